@@ -1,0 +1,103 @@
+"""FedProx with update validation, evaluation every N rounds, and per-client records.
+
+Flower's ``FedProx`` already does the right thing (FedAvg weighted by ``num-examples``
+plus ``proximal-mu`` in the train config). These overrides only add what a federation
+of robot owners needs: replies whose arrays are non-finite or do not match the global
+model's names/shapes/dtypes are rejected and logged, not averaged; federated evaluation
+runs every ``eval-frequency`` rounds; and each client's own metrics and dataset
+statistics are handed to a recorder so the server can write them out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+
+import numpy as np
+from flwr.app import ArrayRecord, ConfigRecord, Message, MetricRecord
+from flwr.serverapp import Grid
+from flwr.serverapp.strategy import FedProx
+from loguru import logger
+
+# (phase, round, the replies that counted, their weighted aggregate)
+ClientRecorder = Callable[[str, int, list[Message], MetricRecord | None], None]
+
+
+def array_signature(arrays: ArrayRecord) -> dict[str, tuple[tuple[int, ...], str]]:
+    """Names, shapes and dtypes: what every update must share with the global model."""
+    return {name: (tuple(arr.shape), arr.dtype) for name, arr in arrays.items()}
+
+
+def update_problem(arrays: ArrayRecord, expected: dict[str, tuple[tuple[int, ...], str]]) -> str | None:
+    """Why an update cannot be averaged into the global model, or None if it can."""
+    signature = array_signature(arrays)
+    if set(signature) != set(expected):
+        missing, extra = sorted(set(expected) - set(signature)), sorted(set(signature) - set(expected))
+        return f"array names differ (missing {missing[:3]}, unexpected {extra[:3]})"
+    for name, (shape, dtype) in signature.items():
+        if (shape, dtype) != expected[name]:
+            return f"{name!r} is {dtype}{list(shape)}, expected {expected[name][1]}{list(expected[name][0])}"
+    for name, arr in arrays.items():
+        if not np.isfinite(arr.numpy()).all():
+            return f"{name!r} holds NaN or infinite values"
+    return None
+
+
+class ValidatingFedProx(FedProx):
+    """FedProx that rejects malformed updates and records each client's reply."""
+
+    def __init__(
+        self,
+        *,
+        expected: dict[str, tuple[tuple[int, ...], str]],
+        evaluates_in: Callable[[int], bool],
+        recorder: ClientRecorder,
+        **kwargs,
+    ) -> None:
+        super().__init__(**kwargs)
+        self.expected = expected
+        self.evaluates_in = evaluates_in
+        self.recorder = recorder
+
+    def valid_updates(self, server_round: int, replies: Iterable[Message]) -> list[Message]:
+        """Replies that may be averaged; every other one is logged with its reason."""
+        valid = []
+        for msg in replies:
+            if msg.has_error():
+                logger.warning("Round {}: node {} failed: {}", server_round, msg.metadata.src_node_id, msg.error.reason)
+                continue
+            problem = update_problem(msg.content[self.arrayrecord_key], self.expected)
+            if problem:
+                logger.warning("Round {}: rejected the update of node {}: {}", server_round, msg.metadata.src_node_id, problem)
+                continue
+            valid.append(msg)
+        return valid
+
+    def aggregate_train(
+        self, server_round: int, replies: Iterable[Message]
+    ) -> tuple[ArrayRecord | None, MetricRecord | None]:
+        valid = self.valid_updates(server_round, list(replies))
+        if len(valid) < self.min_train_nodes:
+            logger.warning(
+                "Round {}: {} valid updates, fewer than min-train-clients={}; the global model is kept.",
+                server_round, len(valid), self.min_train_nodes,
+            )
+            self.recorder("train", server_round, valid, None)
+            return None, None
+        arrays, metrics = super().aggregate_train(server_round, valid)
+        self.recorder("train", server_round, valid, metrics)
+        return arrays, metrics
+
+    def configure_evaluate(
+        self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
+    ) -> Iterable[Message]:
+        if not self.evaluates_in(server_round):
+            return []
+        return super().configure_evaluate(server_round, arrays, config, grid)
+
+    def aggregate_evaluate(self, server_round: int, replies: Iterable[Message]) -> MetricRecord | None:
+        replies = list(replies)
+        if not replies:
+            return None
+        metrics = super().aggregate_evaluate(server_round, replies)
+        self.recorder("evaluate", server_round, [m for m in replies if not m.has_error()], metrics)
+        return metrics

@@ -1,0 +1,130 @@
+"""Everything a run leaves on disk, written by the server from what clients report.
+
+Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
+
+    server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
+    clients/client_<i>/client.log (written by the client), round_<N>.json
+    models/checkpoint_round_<N>/   a lerobot pretrained-model directory
+
+JSON and charts are rewritten after every round, so an interrupted run keeps them;
+checkpoints are written under a temporary name and renamed; nothing is pickled.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from zk0.policy import PolicyBundle  # noqa: E402
+
+CHARTS = {"policy-loss": "policy_loss.png", "action-mse": "action_mse.png"}
+
+
+def new_run_dir(output_dir: str | Path) -> Path:
+    """A fresh ``<output-dir>/<timestamp>`` folder (suffixed if two runs start in the same second)."""
+    stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    base = Path(output_dir).expanduser().resolve()
+    for suffix in ["", *(f"_{i}" for i in range(1, 100))]:
+        candidate = base / f"{stamp}{suffix}"
+        try:
+            candidate.mkdir(parents=True)
+            return candidate
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"Could not create a new run directory under {base}.")
+
+
+def client_dir(run_dir: Path, index: int) -> Path:
+    return run_dir / "clients" / f"client_{index}"
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Write JSON atomically (temp file + rename): readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as tmp:
+        json.dump(data, tmp, indent=2, sort_keys=True)
+    os.replace(tmp.name, path)
+
+
+@dataclass
+class History:
+    """Per-round metrics: clients' train and evaluate replies, their aggregates, and server eval."""
+
+    run_dir: Path
+    client_names: dict[int, str]
+    rounds: dict[int, dict] = field(default_factory=dict)
+
+    def round(self, server_round: int) -> dict:
+        return self.rounds.setdefault(server_round, {"round": server_round, "clients": {}})
+
+    def add_client(self, server_round: int, phase: str, index: int, metrics: dict) -> None:
+        clients = self.round(server_round)["clients"]
+        clients.setdefault(str(index), {"dataset": self.client_names.get(index, "?")})[phase] = metrics
+
+    def add(self, server_round: int, key: str, metrics: dict | None) -> None:
+        if metrics:
+            self.round(server_round)[key] = metrics
+
+    def write_round(self, server_round: int) -> None:
+        """``round_<N>.json`` for the server and each client, the history, and both charts."""
+        record = self.round(server_round)
+        write_json(self.run_dir / "server" / f"round_{server_round}.json", record)
+        for index, metrics in record["clients"].items():
+            write_json(client_dir(self.run_dir, int(index)) / f"round_{server_round}.json", metrics)
+        history = {"clients": {str(i): n for i, n in self.client_names.items()}, "rounds": [self.rounds[r] for r in sorted(self.rounds)]}
+        write_json(self.run_dir / "server" / "metrics_history.json", history)
+        for metric, filename in CHARTS.items():
+            self.chart(metric, self.run_dir / "server" / filename)
+
+    def chart(self, metric: str, path: Path) -> None:
+        """One line per client, the clients' weighted aggregate, and the server's own evaluation."""
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        rounds = sorted(self.rounds)
+        for index, name in sorted(self.client_names.items()):
+            points = [(r, self.rounds[r]["clients"].get(str(index), {}).get("evaluate", {}).get(metric)) for r in rounds]
+            _line(ax, points, f"client {index} ({name})", "-", 1.0)
+        _line(ax, [(r, self.rounds[r].get("aggregate-evaluate", {}).get(metric)) for r in rounds], "clients (weighted)", "--", 2.0)
+        _line(ax, [(r, self.rounds[r].get("server-evaluate", {}).get(metric)) for r in rounds], "server eval", "-", 2.5)
+        ax.set(xlabel="round", ylabel=metric, title=f"{metric} per round")
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=8)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.png")
+        fig.savefig(tmp, dpi=100)
+        plt.close(fig)
+        os.replace(tmp, path)
+
+
+def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, width: float) -> None:
+    points = [(r, v) for r, v in points if v is not None]
+    if points:
+        ax.plot(*zip(*points, strict=True), style, marker="o", linewidth=width, label=label)
+
+
+def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int) -> Path:
+    """A lerobot pretrained-model directory, written to a temporary name and renamed into place."""
+    models = run_dir / "models"
+    models.mkdir(parents=True, exist_ok=True)
+    final = models / f"checkpoint_round_{server_round}"
+    staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=models))
+    try:
+        bundle.policy.save_pretrained(staging)
+        bundle.preprocessor.save_pretrained(staging)
+        bundle.postprocessor.save_pretrained(staging)
+        if final.exists():
+            shutil.rmtree(final)
+        staging.rename(final)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return final

@@ -1,0 +1,116 @@
+"""Offline assets: the synthetic datasets and the tiny backbone, generated once and cached.
+
+Nothing here touches the Hugging Face Hub. Each asset lives in its own folder under
+the cache root with a ``zk0_manifest.json`` naming the generator version and seed;
+a folder whose manifest is missing or differs is regenerated. Generation writes to a
+temporary sibling and renames it into place under a file lock, so parallel test
+workers and interrupted runs never see half an asset.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+from filelock import FileLock
+
+from zk0.assets.backbone import build_tiny_backbone
+from zk0.assets.datasets import SPECS, write_synthetic_dataset
+
+GENERATOR_VERSION = 1
+MANIFEST = "zk0_manifest.json"
+TINY_BACKBONE = "tiny-smolvlm"
+
+
+class AssetError(ValueError):
+    """A bad asset request; the message is one sentence naming the bad value."""
+
+
+def default_cache_root() -> Path:
+    """``$ZK0_CACHE``, else ``$XDG_CACHE_HOME/zk0``, else ``~/.cache/zk0``."""
+    if os.environ.get("ZK0_CACHE"):
+        return Path(os.environ["ZK0_CACHE"]).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(xdg) / "zk0"
+
+
+def _writable_root(root: Path) -> Path:
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=root):
+            pass
+    except OSError as err:
+        raise AssetError(f"Cache dir {str(root)!r} is not writable ({err.strerror}); pick another with --cache-dir or ZK0_CACHE.") from None
+    return root
+
+
+def _ensure(target: Path, manifest: dict, build: Callable[[Path], None]) -> Path:
+    """Return ``target``, (re)building it with ``build(tmp_dir)`` unless its manifest matches."""
+    if _manifest_matches(target, manifest):
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(str(target) + ".lock"):
+        if _manifest_matches(target, manifest):
+            return target
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
+        try:
+            build(staging / "asset")
+            (staging / "asset" / MANIFEST).write_text(json.dumps(manifest, sort_keys=True))
+            if target.exists():
+                shutil.rmtree(target)
+            (staging / "asset").rename(target)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
+def _manifest_matches(target: Path, manifest: dict) -> bool:
+    try:
+        return json.loads((target / MANIFEST).read_text()) == manifest
+    except (OSError, ValueError):
+        return False
+
+
+def ensure_backbone(root: Path | None = None) -> Path:
+    """The tiny SmolVLM backbone dir, built if missing or stale."""
+    root = _writable_root(root or default_cache_root())
+    manifest = {"asset": TINY_BACKBONE, "version": GENERATOR_VERSION}
+    return _ensure(root / "backbones" / TINY_BACKBONE, manifest, build_tiny_backbone)
+
+
+def synthetic_dataset_root(name: str, root: Path | None = None) -> Path:
+    """Where the synthetic dataset ``name`` lives (a LeRobotDataset root)."""
+    if name not in SPECS:
+        raise AssetError(f"Unknown synthetic dataset {name!r}; expected one of {sorted(SPECS)}.")
+    return (root or default_cache_root()) / "datasets" / SPECS[name].repo_id
+
+
+def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes: int | None = None) -> Path:
+    """The synthetic dataset ``name`` as a LeRobotDataset root, generated if missing or stale."""
+    target = synthetic_dataset_root(name, root)
+    if episodes is not None and episodes < 1:
+        raise AssetError(f"Episode count {episodes} for {name!r} is invalid; expected a positive integer.")
+    _writable_root(root or default_cache_root())
+    spec = SPECS[name]
+    manifest = {"asset": name, "version": GENERATOR_VERSION, "seed": seed, "episodes": episodes or spec.episodes}
+    _quiet_video_encoders()
+    return _ensure(target, manifest, lambda tmp: write_synthetic_dataset(spec, tmp, seed, episodes))
+
+
+def ensure_all(root: Path | None = None, seed: int = 0) -> dict[str, Path]:
+    """Every offline asset: the backbone and all synthetic datasets."""
+    paths = {TINY_BACKBONE: ensure_backbone(root)}
+    paths.update({name: ensure_dataset(name, root, seed) for name in SPECS})
+    return paths
+
+
+def _quiet_video_encoders() -> None:
+    """SVT-AV1 and libav print per-video banners to stderr; keep only their errors."""
+    os.environ.setdefault("SVT_LOG", "1")
+    import av.logging
+
+    av.logging.set_level(av.logging.ERROR)

@@ -1,0 +1,130 @@
+"""zk0 ClientApp: one robot owner's dataset, local FedProx steps, held-out evaluation.
+
+Building SmolVLA and opening videos is the expensive part, so a client keeps its policy,
+processors, dataset, data iterator and optimizer in memory for the whole run (one
+``ClientSession`` per run and node in this process) and only loads the global weights
+each round. Replies carry the trainable arrays, one MetricRecord with the same keys on
+every client, and the dataset statistics the server merges into its checkpoints.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from flwr.app import Context, Message, MetricRecord, RecordDict
+from flwr.clientapp import ClientApp
+from loguru import logger
+from torch.utils.data import DataLoader
+
+from zk0.artifacts import client_dir
+from zk0.config import RunConfig, from_run_config
+from zk0.data import DatasetSplit, eval_loader, open_metadata, open_split, train_loader
+from zk0.logs import add_file_sink, setup_logging
+from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.registry import Registry, RegistryError, load_registry
+from zk0.stats import stats_to_record
+from zk0.training import LocalTrainer, evaluate
+
+app = ClientApp()
+
+
+@dataclass
+class ClientSession:
+    """Everything one client keeps between rounds of one run."""
+
+    run: RunConfig
+    index: int
+    bundle: PolicyBundle
+    split: DatasetSplit
+    trainer: LocalTrainer
+    eval_batches: DataLoader
+    fingerprint: str
+    party: str
+    log_sink: int | None = None
+
+
+_SESSIONS: dict[tuple[int, int], ClientSession] = {}
+
+
+def dataset_index(registry: Registry, context: Context) -> int:
+    """The client's registry index: ``dataset`` in the node config, else the simulation partition id."""
+    if "dataset" in context.node_config:
+        entry = registry.get(str(context.node_config["dataset"]))
+        if entry not in registry.clients:
+            raise RegistryError(f"Dataset {entry.name!r} has role {entry.role!r}; a SuperNode needs a client dataset.")
+        return registry.clients.index(entry)
+    partition = int(context.node_config.get("partition-id", 0))
+    registry.for_partition(partition)
+    return partition
+
+
+def session_for(context: Context) -> ClientSession:
+    """This run's session for this node, built on first use; sessions of older runs are dropped."""
+    key = (context.run_id, context.node_id)
+    if key in _SESSIONS:
+        return _SESSIONS[key]
+    for stale in [k for k in _SESSIONS if k[0] != context.run_id]:
+        del _SESSIONS[stale]
+    setup_logging("client")
+    run = from_run_config(dict(context.run_config))
+    registry = load_registry(run.registry)
+    index = dataset_index(registry, context)
+    entry = registry.clients[index]
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    split = open_split(entry, meta, bundle.policy.config, run)
+    trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+    session = ClientSession(
+        run, index, bundle, split, trainer, eval_loader(split.evaluation, run), backbone_fingerprint(bundle), f"client {index}"
+    )
+    _SESSIONS[key] = session
+    return session
+
+
+def _begin_round(session: ClientSession, msg: Message) -> None:
+    """Open the client's log in the run folder named by the server and load the global weights."""
+    config = msg.content["config"]
+    if session.log_sink is None:
+        session.log_sink = add_file_sink(client_dir(Path(str(config["run-dir"])), session.index) / "client.log", session.party)
+    if config["backbone-fingerprint"] != session.fingerprint:
+        raise PolicyError(
+            f"Client {session.index} ({session.split.entry.name}) has backbone fingerprint {session.fingerprint}, "
+            f"the server has {config['backbone-fingerprint']}; every party must start from the same base model and seed."
+        )
+    set_trainable(session.bundle, msg.content["arrays"])
+
+
+@app.train()
+def train(msg: Message, context: Context) -> Message:
+    """Load the global trainable weights, take ``local-steps`` FedProx steps, send the new weights back."""
+    session = session_for(context)
+    with logger.contextualize(party=session.party):
+        _begin_round(session, msg)
+        server_round = int(msg.content["config"]["server-round"])
+        run = session.run
+        metrics = session.trainer.fit(
+            run.local_steps, float(msg.content["config"]["proximal-mu"]), (server_round - 1) * run.local_steps
+        )
+        logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
+        content = RecordDict(
+            {
+                "arrays": get_trainable(session.bundle),
+                "metrics": MetricRecord({**metrics, "dataset-index": session.index}),
+                "stats": stats_to_record(session.bundle.stats),
+            }
+        )
+    return Message(content=content, reply_to=msg)
+
+
+@app.evaluate()
+def evaluate_(msg: Message, context: Context) -> Message:
+    """Policy loss and action MSE of the global model on this client's held-out episodes."""
+    session = session_for(context)
+    with logger.contextualize(party=session.party):
+        _begin_round(session, msg)
+        run = session.run
+        metrics = evaluate(session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed)
+        logger.info("Round {} evaluate on {}: {}", msg.content["config"]["server-round"], session.split.entry.name, metrics)
+        content = RecordDict({"metrics": MetricRecord({**metrics, "dataset-index": session.index})})
+    return Message(content=content, reply_to=msg)

@@ -1,0 +1,131 @@
+"""The typed run config: every ``[tool.flwr.app.config]`` key, read from the Flower ``Context``.
+
+Flower merges ``pyproject.toml`` defaults with ``--run-config`` overrides; this module
+turns that flat dict into a ``RunConfig``, checks every value once before any training
+starts and fails with one sentence naming the key, the value and what is allowed.
+The dataclass defaults equal the pyproject table (a test keeps them so), which also
+lets the Python simulation API run with an empty run config.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+from loguru import logger
+
+DEVICES = ("auto", "cpu", "cuda", "mps")
+
+
+class ConfigError(ValueError):
+    """A bad run-config value; the message is one sentence naming key, value and what is allowed."""
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The federation's knobs, one field per run-config key (``-`` in keys becomes ``_``)."""
+
+    num_server_rounds: int = 1
+    local_steps: int = 2
+    local_epochs: int = 0  # deprecated alias of local_steps, 0 = unset
+    batch_size: int = 8
+    lr: float = 1e-4
+    proximal_mu: float = 0.01
+    fraction_train: float = 1.0
+    min_train_clients: int = 2
+    fraction_evaluate: float = 1.0
+    eval_frequency: int = 1
+    eval_episodes: int = 2
+    eval_batches: int = 4
+    checkpoint_interval: int = 5
+    model: str = "tiny"
+    chunk_size: int = 10
+    device: str = "auto"
+    seed: int = 42
+    num_workers: int = 0
+    max_skip_fraction: float = 0.1
+    output_dir: str = "outputs"
+    registry: str = ""
+    server_eval_dataset: str = "synth-so100-eval"
+    use_wandb: bool = False
+
+    @property
+    def total_steps(self) -> int:
+        """Optimizer steps a client that trains every round takes over the whole run."""
+        return self.num_server_rounds * self.local_steps
+
+    def evaluates_in(self, server_round: int) -> bool:
+        """Evaluation runs every ``eval-frequency`` rounds and always after the last one."""
+        return server_round % self.eval_frequency == 0 or server_round == self.num_server_rounds
+
+    def to_flat(self) -> dict[str, Any]:
+        """The run-config form (kebab-case keys), e.g. for round JSON files."""
+        return {f.name.replace("_", "-"): getattr(self, f.name) for f in fields(self)}
+
+
+# (lowest allowed, highest allowed, whether the lowest is excluded)
+_RANGES: dict[str, tuple[float, float | None, bool]] = {
+    "num_server_rounds": (1, None, False),
+    "local_steps": (1, None, False),
+    "local_epochs": (0, None, False),
+    "batch_size": (1, None, False),
+    "lr": (0, 1, True),
+    "proximal_mu": (0, None, False),
+    "fraction_train": (0, 1, True),
+    "min_train_clients": (1, None, False),
+    "fraction_evaluate": (0, 1, False),
+    "eval_frequency": (1, None, False),
+    "eval_episodes": (1, None, False),
+    "eval_batches": (1, None, False),
+    "checkpoint_interval": (1, None, False),
+    "chunk_size": (1, None, False),
+    "num_workers": (0, None, False),
+    "max_skip_fraction": (0, 1, False),
+}
+
+
+def from_run_config(run_config: dict[str, Any]) -> RunConfig:
+    """Validate Flower's flat run config and build a ``RunConfig``."""
+    known = {f.name: f for f in fields(RunConfig)}
+    values: dict[str, Any] = {}
+    for key, value in run_config.items():
+        name = key.replace("-", "_")
+        if name not in known:
+            allowed = ", ".join(sorted(k.replace("_", "-") for k in known))
+            raise ConfigError(f"Unknown run-config key {key!r}; allowed keys are: {allowed}.")
+        values[name] = _coerce(key, value, known[name].type)
+    for name, value in values.items():
+        _check_range(name, value)
+    if values.get("local_epochs"):
+        logger.warning("Run-config key 'local-epochs' is deprecated; it now means local-steps.")
+        values["local_steps"] = values["local_epochs"]
+    cfg = RunConfig(**values)
+    _check_choices(cfg)
+    return cfg
+
+
+def _coerce(key: str, value: Any, type_name: str) -> Any:
+    """Accept ints where floats are expected; refuse everything else of the wrong type."""
+    expected = {"int": int, "float": float, "str": str, "bool": bool}[type_name]
+    if expected is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, bool) != (expected is bool) or not isinstance(value, expected):
+        raise ConfigError(f"Run-config key {key!r} got {value!r} ({type(value).__name__}); expected a {type_name}.")
+    return value
+
+
+def _check_range(name: str, value: Any) -> None:
+    if name not in _RANGES:
+        return
+    low, high, open_low = _RANGES[name]
+    too_low = value <= low if open_low else value < low
+    if too_low or (high is not None and value > high):
+        bound = f"{'>' if open_low else '>='} {low}" + (f" and <= {high}" if high is not None else "")
+        raise ConfigError(f"Run-config key {name.replace('_', '-')!r} got {value!r}; expected a value {bound}.")
+
+
+def _check_choices(cfg: RunConfig) -> None:
+    if cfg.device.split(":")[0] not in DEVICES:
+        raise ConfigError(f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} (cuda:N allowed).")
+    if not cfg.model:
+        raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")

@@ -1,0 +1,53 @@
+"""loguru as the one logger; Flower's, lerobot's and Ray's ``logging`` records are routed into it.
+
+An intercept handler on the root logger re-emits every standard-library record through
+loguru with the record's own module, function and line, so server and client logs have
+one format and the real caller. Flower installs its own handler on the ``flwr`` logger;
+it is replaced so each line appears once.
+"""
+
+from __future__ import annotations
+
+import inspect
+import logging
+import sys
+from pathlib import Path
+
+from loguru import logger
+
+FORMAT = "{time:YYYY-MM-DD HH:mm:ss.SSS} | {level: <7} | {extra[party]} | {name}:{function}:{line} - {message}"
+
+
+class InterceptHandler(logging.Handler):
+    """Send a ``logging`` record to loguru, keeping the original caller."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            level: str | int = logger.level(record.levelname).name
+        except ValueError:
+            level = record.levelno
+        frame, depth = inspect.currentframe(), 0
+        while frame and (depth == 0 or frame.f_code.co_filename == logging.__file__):
+            frame, depth = frame.f_back, depth + 1
+        logger.opt(depth=depth, exception=record.exc_info).log(level, record.getMessage())
+
+
+def setup_logging(party: str, level: str = "INFO") -> None:
+    """A console (stderr) sink; all third-party logging routed through loguru."""
+    logger.remove()
+    logger.configure(extra={"party": party})
+    logger.add(sys.stderr, level=level, format=FORMAT)
+    logging.basicConfig(handlers=[InterceptHandler()], level=0, force=True)
+    for name in ("flwr", "lerobot", "ray", "accelerate"):
+        third_party = logging.getLogger(name)
+        third_party.handlers = []
+        third_party.propagate = True
+
+
+def add_file_sink(log_file: Path, party: str, level: str = "INFO") -> int:
+    """Also write ``party``'s records (see ``logger.contextualize(party=...)``) to ``log_file``.
+
+    Several simulated clients can share one process, so each file keeps only its own party.
+    """
+    log_file.parent.mkdir(parents=True, exist_ok=True)
+    return logger.add(log_file, level=level, format=FORMAT, filter=lambda r: r["extra"].get("party") == party)

@@ -1,0 +1,172 @@
+"""SmolVLA and its processors, built with lerobot's factories the same way on every party.
+
+Only the trainable parameters travel between server and clients; the frozen backbone
+comes from the same base (the tiny offline backbone seeded identically, or a pretrained
+checkpoint), and its fingerprint travels in the config so a mismatch fails loudly.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from flwr.app import ArrayRecord
+from lerobot.configs import FeatureType, PreTrainedConfig
+from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
+from lerobot.policies import PreTrainedPolicy, make_policy, make_pre_post_processors
+from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep, rename_stats
+from lerobot.utils.feature_utils import dataset_to_policy_features
+from transformers import AutoConfig
+
+from zk0.assets import ensure_backbone
+from zk0.config import RunConfig
+from zk0.registry import DatasetEntry
+
+TINY_MODEL = "tiny"
+
+
+class PolicyError(ValueError):
+    """A dataset or model that cannot feed the global policy; one sentence naming it."""
+
+
+@dataclass
+class PolicyBundle:
+    """A policy with the processors that normalise its inputs and unnormalise its actions."""
+
+    policy: PreTrainedPolicy
+    preprocessor: PolicyProcessorPipeline
+    postprocessor: PolicyProcessorPipeline
+    trainable_names: list[str]
+    device: torch.device
+    stats: dict  # the normalisation statistics the processors use, under model key names
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` picks CUDA, then MPS, then CPU."""
+    if name != "auto":
+        return torch.device(name)
+    if torch.cuda.is_available():
+        return torch.device("cuda")
+    if torch.backends.mps.is_available():
+        return torch.device("mps")
+    return torch.device("cpu")
+
+
+def policy_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
+    """SmolVLA's config: a fresh policy on the tiny backbone, or a pretrained policy's own config."""
+    if run.model == TINY_MODEL:
+        backbone = ensure_backbone()
+        image_size = AutoConfig.from_pretrained(backbone).vision_config.image_size
+        return SmolVLAConfig(
+            vlm_model_name=str(backbone),
+            load_vlm_weights=False,
+            resize_imgs_with_padding=(image_size, image_size),
+            chunk_size=run.chunk_size,
+            n_action_steps=run.chunk_size,
+            optimizer_lr=run.lr,
+            device=device.type,
+            push_to_hub=False,
+        )
+    cfg = PreTrainedConfig.from_pretrained(run.model)
+    if not isinstance(cfg, SmolVLAConfig):
+        raise PolicyError(f"Model {run.model!r} is a {cfg.type!r} policy; zk0 fine-tunes SmolVLA policies only.")
+    cfg.pretrained_path = Path(run.model) if Path(run.model).is_dir() else run.model
+    cfg.optimizer_lr = run.lr
+    cfg.device = device.type
+    cfg.push_to_hub = False
+    return cfg
+
+
+def model_features(meta: LeRobotDatasetMetadata, entry: DatasetEntry, model_cameras: list[str]) -> dict:
+    """The dataset's state, action and cameras renamed onto the global model's input keys."""
+    features = dataset_to_policy_features(meta.features)
+    rename = entry.rename_map()
+    renamed = {rename.get(key, key): ft for key, ft in features.items()}
+    for key in ("observation.state", "action"):
+        if key not in renamed:
+            raise PolicyError(f"Dataset {entry.name!r} has no {key!r} feature; SmolVLA needs joint state and actions.")
+    cameras = sorted(k for k, ft in renamed.items() if ft.type is FeatureType.VISUAL)
+    if cameras != model_cameras:
+        raise PolicyError(
+            f"Dataset {entry.name!r} maps its cameras to {cameras}; the global model expects {model_cameras} "
+            f"(set cameras = {{...}} in its registry entry, dataset cameras: {sorted(meta.camera_keys)})."
+        )
+    return {k: renamed[k] for k in [*cameras, "observation.state", "action"]}
+
+
+def build_policy(
+    run: RunConfig, meta: LeRobotDatasetMetadata, entry: DatasetEntry, model_cameras: list[str]
+) -> PolicyBundle:
+    """Build SmolVLA + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``."""
+    device = resolve_device(run.device)
+    cfg = policy_config(run, device)
+    features = model_features(meta, entry, model_cameras)
+    if cfg.pretrained_path is None:
+        cfg.input_features = {k: ft for k, ft in features.items() if ft.type is not FeatureType.ACTION}
+    torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
+    policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
+    stats = rename_stats(meta.stats, entry.rename_map())
+    preprocessor, postprocessor = make_pre_post_processors(
+        policy.config,
+        pretrained_path=str(cfg.pretrained_path) if cfg.pretrained_path else None,
+        dataset_stats=stats,
+        **_pretrained_overrides(policy.config, stats, device) if cfg.pretrained_path else {},
+    )
+    for step in preprocessor.steps:
+        if isinstance(step, RenameObservationsProcessorStep):
+            step.rename_map = entry.rename_map()
+    trainable = [name for name, p in policy.named_parameters() if p.requires_grad]
+    return PolicyBundle(policy, preprocessor, postprocessor, trainable, device, stats)
+
+
+def _pretrained_overrides(cfg: PreTrainedConfig, stats: dict, device: torch.device) -> dict:
+    """Point a pretrained checkpoint's processors at this dataset's statistics and device."""
+    return {
+        "preprocessor_overrides": {
+            "device_processor": {"device": device.type},
+            "normalizer_processor": {
+                "stats": stats,
+                "features": {**cfg.input_features, **cfg.output_features},
+                "norm_map": cfg.normalization_mapping,
+            },
+        },
+        "postprocessor_overrides": {
+            "unnormalizer_processor": {
+                "stats": stats,
+                "features": cfg.output_features,
+                "norm_map": cfg.normalization_mapping,
+            }
+        },
+    }
+
+
+def get_trainable(bundle: PolicyBundle) -> ArrayRecord:
+    """The trainable parameters as an ArrayRecord (fp32, CPU), in a fixed order."""
+    params = dict(bundle.policy.named_parameters())
+    return ArrayRecord({name: params[name].detach().to("cpu", torch.float32) for name in bundle.trainable_names})
+
+
+def set_trainable(bundle: PolicyBundle, arrays: ArrayRecord) -> None:
+    """Copy global trainable parameters into the policy; names must match exactly."""
+    incoming = arrays.to_torch_state_dict()
+    if set(incoming) != set(bundle.trainable_names):
+        missing = sorted(set(bundle.trainable_names) - set(incoming))[:3]
+        extra = sorted(set(incoming) - set(bundle.trainable_names))[:3]
+        raise PolicyError(f"Global arrays do not match this policy's trainable parameters (missing {missing}, extra {extra}).")
+    params = dict(bundle.policy.named_parameters())
+    with torch.no_grad():
+        for name, tensor in incoming.items():
+            params[name].copy_(tensor.to(params[name].device, params[name].dtype))
+
+
+def backbone_fingerprint(bundle: PolicyBundle) -> str:
+    """A short hash of every frozen parameter: equal on two parties iff their backbones are equal."""
+    digest = hashlib.sha256()
+    for name, param in sorted(bundle.policy.named_parameters()):
+        if not param.requires_grad:
+            digest.update(name.encode())
+            digest.update(param.detach().to("cpu", torch.float32).numpy().tobytes())
+    return digest.hexdigest()[:16]

@@ -1,0 +1,118 @@
+"""zk0 ServerApp: FedProx over the trainable SmolVLA parameters, server evaluation, artifacts.
+
+The server builds the global policy exactly as clients do (same base, same seed) on
+its evaluation dataset, sends only the trainable arrays plus the backbone fingerprint,
+aggregates the clients' updates weighted by samples trained, and at the end of every
+round evaluates the global model (every ``eval-frequency`` rounds) and writes JSON,
+charts and, every ``checkpoint-interval`` rounds and after the last, a checkpoint.
+"""
+
+from __future__ import annotations
+
+import time
+
+from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MetricRecord
+from flwr.serverapp import Grid, ServerApp
+from lerobot.datasets.compute_stats import aggregate_stats
+from lerobot.policies import make_pre_post_processors
+from loguru import logger
+
+from zk0.aggregation import ValidatingFedProx, array_signature
+from zk0.artifacts import History, new_run_dir, save_checkpoint
+from zk0.config import RunConfig, from_run_config
+from zk0.data import DatasetSplit, eval_loader, open_evaluation, open_metadata
+from zk0.logs import add_file_sink, setup_logging
+from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.registry import load_registry
+from zk0.stats import stats_from_record
+from zk0.tracking import Tracker
+from zk0.training import evaluate
+
+app = ServerApp()
+
+
+class RoundEnd:
+    """Flower's ``evaluate_fn`` hook, the last step of every round: server eval, then artifacts."""
+
+    def __init__(self, run: RunConfig, bundle: PolicyBundle, split: DatasetSplit, history: History, tracker: Tracker):
+        self.run, self.bundle, self.split, self.history, self.tracker = run, bundle, split, history, tracker
+        self.loader = eval_loader(split.evaluation, run)
+        self.client_stats: dict[int, dict] = {}
+        self.started = time.perf_counter()
+
+    def record_clients(self, phase: str, server_round: int, replies: list[Message], aggregate: MetricRecord | None) -> None:
+        """Keep each client's metrics (by dataset index, never node id), their aggregate and dataset statistics."""
+        if aggregate:
+            summary = {k: v for k, v in aggregate.items() if k != "dataset-index"}
+            self.history.add(server_round, f"aggregate-{phase}", summary)
+        for msg in replies:
+            metrics = dict(msg.content["metrics"])
+            index = int(metrics.pop("dataset-index"))
+            self.history.add_client(server_round, phase, index, metrics)
+            if "stats" in msg.content:
+                self.client_stats[index] = stats_from_record(msg.content["stats"])
+
+    def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
+        set_trainable(self.bundle, arrays)
+        metrics = None
+        if server_round == 0 or self.run.evaluates_in(server_round):
+            metrics = evaluate(self.bundle, self.split, self.loader, self.run.eval_batches, self.run.seed)
+            logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
+            self.history.add(server_round, "server-evaluate", metrics)
+        self.history.add(server_round, "elapsed-s", {"wall": time.perf_counter() - self.started})
+        self.history.write_round(server_round)
+        if server_round and (server_round % self.run.checkpoint_interval == 0 or server_round == self.run.num_server_rounds):
+            path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round)
+            logger.info("Round {} checkpoint: {}", server_round, path)
+        self.tracker.log(server_round, self.history.round(server_round))
+        return MetricRecord(metrics) if metrics else None
+
+    def checkpoint_bundle(self) -> PolicyBundle:
+        """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
+        stats = aggregate_stats(list(self.client_stats.values())) if self.client_stats else self.bundle.stats
+        pre, post = make_pre_post_processors(self.bundle.policy.config, dataset_stats=stats)
+        return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
+
+
+@app.main()
+def main(grid: Grid, context: Context) -> None:
+    """Validate the config, build the global model, run FedProx, write artifacts every round."""
+    setup_logging("server")
+    run = from_run_config(dict(context.run_config))
+    registry = load_registry(run.registry)
+    run_dir = new_run_dir(run.output_dir)
+    add_file_sink(run_dir / "server" / "server.log", "server")
+    logger.info("Run {} writing to {}", context.run_id, run_dir)
+
+    entry = registry.get(run.server_eval_dataset)
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    initial = get_trainable(bundle)
+    fingerprint = backbone_fingerprint(bundle)
+    logger.info("Global model: {} trainable tensors, backbone fingerprint {}", len(initial), fingerprint)
+
+    history = History(run_dir, {i: e.name for i, e in enumerate(registry.clients)})
+    tracker = Tracker.start(run, run_dir)
+    round_end = RoundEnd(run, bundle, open_evaluation(entry, meta, bundle.policy.config), history, tracker)
+    strategy = ValidatingFedProx(
+        expected=array_signature(initial),
+        evaluates_in=run.evaluates_in,
+        recorder=round_end.record_clients,
+        proximal_mu=run.proximal_mu,
+        fraction_train=run.fraction_train,
+        fraction_evaluate=run.fraction_evaluate,
+        min_train_nodes=run.min_train_clients,
+        min_evaluate_nodes=1,
+        min_available_nodes=run.min_train_clients,
+    )
+    shared = {"backbone-fingerprint": fingerprint, "run-dir": str(run_dir)}
+    strategy.start(
+        grid=grid,
+        initial_arrays=initial,
+        num_rounds=run.num_server_rounds,
+        train_config=ConfigRecord(dict(shared)),
+        evaluate_config=ConfigRecord(dict(shared)),
+        evaluate_fn=round_end,
+    )
+    tracker.finish()
+    logger.info("Done: outputs in {}", run_dir)

@@ -1,0 +1,214 @@
+"""Local training with lerobot's ``update_policy`` plus FedProx, and seeded evaluation.
+
+FedProx adds ``(mu/2)·||w - w_global||²`` over the trainable parameters. Its gradient,
+``mu·(w - w_global)``, is added by a hook on each trainable parameter, so lerobot's
+``update_policy`` (autocast, backward, clipping, optimizer and scheduler step) runs
+untouched. The learning-rate schedule is a function of the global step
+(``(round - 1) × local-steps``), so its warm-up happens once per federation, not once
+per round, whichever rounds a client happens to be sampled in.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import nullcontext
+from dataclasses import dataclass, field
+
+import psutil
+import torch
+from accelerate import Accelerator
+from lerobot.configs.train import TrainPipelineConfig
+from lerobot.optim.factory import make_optimizer_and_scheduler
+from lerobot.scripts.lerobot_train import update_policy
+from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
+from loguru import logger
+from torch.utils.data import DataLoader
+
+from zk0.config import RunConfig
+from zk0.data import DatasetSplit, prepare_batch
+from zk0.policy import PolicyBundle
+
+
+class TrainingError(RuntimeError):
+    """A round a client cannot complete (too many unreadable batches, say)."""
+
+
+class FedProx:
+    """The proximal term as gradient hooks anchored at the round's global weights."""
+
+    def __init__(self, params: dict[str, torch.nn.Parameter]):
+        self.params = params
+        self.mu = 0.0
+        self.anchor: dict[str, torch.Tensor] = {}
+        self._handles = [p.register_hook(self._hook(name)) for name, p in params.items()]
+
+    def _hook(self, name: str):
+        def add_proximal_grad(grad: torch.Tensor) -> torch.Tensor:
+            if self.mu == 0.0:
+                return grad
+            return grad + self.mu * (self.params[name].detach() - self.anchor[name]).to(grad.dtype)
+
+        return add_proximal_grad
+
+    def anchor_at(self, mu: float) -> None:
+        """Remember the current (global) weights as the proximal centre for this round."""
+        self.mu = mu
+        self.anchor = {name: p.detach().clone() for name, p in self.params.items()}
+
+    def loss(self) -> float:
+        """``(mu/2)·||w - w_global||²`` at the current weights."""
+        if not self.anchor:
+            return 0.0
+        with torch.no_grad():
+            sq = sum(torch.sum((p.detach() - self.anchor[n]) ** 2) for n, p in self.params.items())
+        return float(self.mu / 2 * sq)
+
+
+def accelerator_for(device: torch.device) -> Accelerator:
+    """Single-device Accelerator: bf16 autocast on GPUs that support it, full precision elsewhere."""
+    bf16 = device.type == "cuda" and torch.cuda.is_bf16_supported()
+    return Accelerator(
+        cpu=device.type == "cpu", mixed_precision="bf16" if bf16 else "no", step_scheduler_with_optimizer=False
+    )
+
+
+def set_schedule_step(scheduler, global_step: int) -> None:
+    """Put a LambdaLR schedule (lerobot's presets) at ``global_step`` and set the learning rates."""
+    scheduler.last_epoch = global_step
+    lrs = [base * fn(global_step) for base, fn in zip(scheduler.base_lrs, scheduler.lr_lambdas, strict=True)]
+    for group, lr in zip(scheduler.optimizer.param_groups, lrs, strict=True):
+        group["lr"] = lr
+    scheduler._last_lr = lrs
+
+
+@dataclass
+class LocalTrainer:
+    """What a client keeps across rounds: policy, data iterator, optimizer, scheduler, FedProx."""
+
+    bundle: PolicyBundle
+    split: DatasetSplit
+    loader: DataLoader
+    run: RunConfig
+    optimizer: torch.optim.Optimizer = field(init=False)
+    scheduler: torch.optim.lr_scheduler.LambdaLR = field(init=False)
+    accelerator: Accelerator = field(init=False)
+    fedprox: FedProx = field(init=False)
+    _batches: Iterator | None = field(init=False, default=None)
+
+    def __post_init__(self) -> None:
+        cfg = self.bundle.policy.config
+        train_cfg = TrainPipelineConfig(
+            dataset=None,  # type: ignore[arg-type]  # only the optimizer presets and steps are read
+            policy=cfg,
+            optimizer=cfg.get_optimizer_preset(),
+            scheduler=cfg.get_scheduler_preset(),
+            steps=self.run.total_steps,
+        )
+        self.optimizer, self.scheduler = make_optimizer_and_scheduler(train_cfg, self.bundle.policy)
+        self.grad_clip_norm = train_cfg.optimizer.grad_clip_norm
+        self.accelerator = accelerator_for(self.bundle.device)
+        params = dict(self.bundle.policy.named_parameters())
+        self.fedprox = FedProx({n: params[n] for n in self.bundle.trainable_names})
+
+    def _next_batch(self) -> dict:
+        if self._batches is None:
+            self._batches = iter(self.loader)
+        try:
+            return next(self._batches)
+        except StopIteration:
+            self._batches = iter(self.loader)
+            return next(self._batches)
+
+    def fit(self, steps: int, mu: float, global_step: int) -> dict[str, float]:
+        """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics."""
+        self.fedprox.anchor_at(mu)
+        set_schedule_step(self.scheduler, global_step)
+        tracker = MetricsTracker(
+            self.run.batch_size, self.split.meta.total_frames, self.split.meta.total_episodes,
+            {"loss": AverageMeter("loss"), "grad_norm": AverageMeter("grdn"), "lr": AverageMeter("lr"),
+             "update_s": AverageMeter("updt_s"), "dataloading_s": AverageMeter("data_s")},
+        )
+        cameras, task = self.split.meta.camera_keys, self.split.entry.task
+        done = skipped = samples = 0
+        started = time.perf_counter()
+        if self.bundle.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats()
+        while done < steps:
+            t0 = time.perf_counter()
+            try:
+                batch = self._next_batch()
+            except Exception as err:  # a frame that fails to decode costs a batch, not the round
+                skipped += 1
+                logger.warning("Skipped an unreadable batch from {}: {}", self.split.entry.name, err)
+                self._check_skips(skipped, done)
+                continue
+            batch = self.bundle.preprocessor(prepare_batch(batch, cameras, task))
+            tracker.dataloading_s = time.perf_counter() - t0
+            tracker, _ = update_policy(
+                tracker, self.bundle.policy, batch, self.optimizer, self.grad_clip_norm,
+                accelerator=self.accelerator, lr_scheduler=self.scheduler,
+            )
+            samples += len(batch["action"])
+            done += 1
+        elapsed = time.perf_counter() - started
+        return {
+            "train-loss": tracker.loss.avg,
+            "proximal-loss": self.fedprox.loss(),
+            "grad-norm": tracker.grad_norm.avg,
+            "lr": self.optimizer.param_groups[0]["lr"],
+            "num-examples": samples,
+            "skipped-batches": skipped,
+            "step-time": elapsed / steps,
+            **peak_memory(self.bundle.device),
+        }
+
+    def _check_skips(self, skipped: int, done: int) -> None:
+        fraction = skipped / (skipped + done)
+        if skipped >= 3 and fraction > self.run.max_skip_fraction:
+            raise TrainingError(
+                f"Dataset {self.split.entry.name!r}: {skipped} of {skipped + done} batches could not be decoded, "
+                f"more than max-skip-fraction={self.run.max_skip_fraction}."
+            )
+
+
+def peak_memory(device: torch.device) -> dict[str, float]:
+    """Peak GPU memory (GiB, 0 on CPU) and this process's resident host memory (GiB)."""
+    gpu = torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else 0.0
+    return {"peak-gpu-gib": gpu, "host-rss-gib": psutil.Process().memory_info().rss / 2**30}
+
+
+@torch.no_grad()
+def evaluate(bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int) -> dict[str, float]:
+    """Seeded flow-matching policy loss and action-chunk MSE (unnormalised units) on held-out frames."""
+    policy = bundle.policy
+    policy.eval()
+    losses, sq_err, counted, samples = [], 0.0, 0, 0
+    autocast = (
+        torch.autocast("cuda", dtype=torch.bfloat16)
+        if bundle.device.type == "cuda" and torch.cuda.is_bf16_supported()
+        else nullcontext()
+    )
+    for index, batch in enumerate(loader):
+        if index >= max_batches:
+            break
+        raw_action, is_pad = batch["action"].clone(), batch["action_is_pad"].clone()
+        batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task))
+        with torch.random.fork_rng(devices=[bundle.device] if bundle.device.type == "cuda" else []), autocast:
+            torch.manual_seed(seed + index)  # same noise and time every round: losses are comparable
+            loss, _ = policy.forward(batch)
+            policy.reset()
+            chunk = bundle.postprocessor(policy.predict_action_chunk(batch)).float()
+        losses.append(float(loss))
+        horizon = min(chunk.shape[1], raw_action.shape[1])
+        valid = ~is_pad[:, :horizon]
+        err = (chunk[:, :horizon].cpu() - raw_action[:, :horizon]) ** 2
+        sq_err += float(err[valid].sum())
+        counted += int(valid.sum()) * raw_action.shape[-1]
+        samples += len(raw_action)
+    policy.train()
+    return {
+        "policy-loss": sum(losses) / max(1, len(losses)),
+        "action-mse": sq_err / max(1, counted),
+        "num-examples": samples,
+    }
