@@ -81,16 +81,21 @@ class History:
         write_json(self.run_dir / "server" / f"round_{server_round}.json", record)
         for index, metrics in record["clients"].items():
             write_json(client_dir(self.run_dir, int(index)) / f"round_{server_round}.json", metrics)
-        history = {"clients": {str(i): n for i, n in self.client_names.items()}, "rounds": [self.rounds[r] for r in sorted(self.rounds)]}
+        history = {"clients": self.participants(), "rounds": [self.rounds[r] for r in sorted(self.rounds)]}
         write_json(self.run_dir / "server" / "metrics_history.json", history)
         for metric, filename in CHARTS.items():
             self.chart(metric, self.run_dir / "server" / filename)
+
+    def participants(self) -> dict[str, str]:
+        """Short index -> dataset name of every client that has replied so far."""
+        seen = {int(i) for record in self.rounds.values() for i in record["clients"]}
+        return {str(i): self.client_names.get(i, "?") for i in sorted(seen)}
 
     def chart(self, metric: str, path: Path) -> None:
         """One line per client, the clients' weighted aggregate, and the server's own evaluation."""
         fig, ax = plt.subplots(figsize=(7, 4.5))
         rounds = sorted(self.rounds)
-        for index, name in sorted(self.client_names.items()):
+        for index, name in self.participants().items():
             points = [(r, self.rounds[r]["clients"].get(str(index), {}).get("evaluate", {}).get(metric)) for r in rounds]
             _line(ax, points, f"client {index} ({name})", "-", 1.0)
         _line(ax, [(r, self.rounds[r].get("aggregate-evaluate", {}).get(metric)) for r in rounds], "clients (weighted)", "--", 2.0)

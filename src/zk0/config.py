@@ -14,10 +14,12 @@ from typing import Any
 
 from loguru import logger
 
+from zk0.errors import Zk0Error
+
 DEVICES = ("auto", "cpu", "cuda", "mps")
 
 
-class ConfigError(ValueError):
+class ConfigError(Zk0Error):
     """A bad run-config value; the message is one sentence naming key, value and what is allowed."""
 
 

@@ -20,11 +20,12 @@ from lerobot.datasets.factory import make_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from torch.utils.data import DataLoader
 
+from zk0.errors import Zk0Error
 from zk0.config import RunConfig
 from zk0.registry import DatasetEntry
 
 
-class DataError(ValueError):
+class DataError(Zk0Error):
     """A dataset that cannot be split or opened as asked; one sentence naming it."""
 
 

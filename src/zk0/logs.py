@@ -36,12 +36,14 @@ def setup_logging(party: str, level: str = "INFO") -> None:
     """A console (stderr) sink; all third-party logging routed through loguru."""
     logger.remove()
     logger.configure(extra={"party": party})
-    logger.add(sys.stderr, level=level, format=FORMAT)
+    logger.add(sys.stderr, level=level, format=FORMAT, backtrace=False, diagnose=False)
     logging.basicConfig(handlers=[InterceptHandler()], level=0, force=True)
     for name in ("flwr", "lerobot", "ray", "accelerate"):
         third_party = logging.getLogger(name)
         third_party.handlers = []
         third_party.propagate = True
+    for chatty in ("httpx", "httpcore", "urllib3", "filelock"):  # one line per HTTP poll otherwise
+        logging.getLogger(chatty).setLevel(logging.WARNING)
 
 
 def add_file_sink(log_file: Path, party: str, level: str = "INFO") -> int:
@@ -50,4 +52,7 @@ def add_file_sink(log_file: Path, party: str, level: str = "INFO") -> int:
     Several simulated clients can share one process, so each file keeps only its own party.
     """
     log_file.parent.mkdir(parents=True, exist_ok=True)
-    return logger.add(log_file, level=level, format=FORMAT, filter=lambda r: r["extra"].get("party") == party)
+    return logger.add(
+        log_file, level=level, format=FORMAT, backtrace=False, diagnose=False,
+        filter=lambda r: r["extra"].get("party") == party,
+    )

@@ -21,6 +21,7 @@ from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcess
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from transformers import AutoConfig
 
+from zk0.errors import Zk0Error
 from zk0.assets import ensure_backbone
 from zk0.config import RunConfig
 from zk0.registry import DatasetEntry
@@ -28,7 +29,7 @@ from zk0.registry import DatasetEntry
 TINY_MODEL = "tiny"
 
 
-class PolicyError(ValueError):
+class PolicyError(Zk0Error):
     """A dataset or model that cannot feed the global policy; one sentence naming it."""
 
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import draccus
 
+from zk0.errors import Zk0Error
 from zk0.assets import ensure_dataset
 from zk0.assets.datasets import SPECS
 
@@ -21,7 +22,7 @@ PROJECT_ROOT = Path(__file__).resolve().parents[2]
 ROLES = ("client", "server")
 
 
-class RegistryError(ValueError):
+class RegistryError(Zk0Error):
     """A bad registry or lookup; the message is one sentence naming the bad value."""
 
 

@@ -20,6 +20,7 @@ from loguru import logger
 from zk0.aggregation import ValidatingFedProx, array_signature
 from zk0.artifacts import History, new_run_dir, save_checkpoint
 from zk0.config import RunConfig, from_run_config
+from zk0.errors import Zk0Error
 from zk0.data import DatasetSplit, eval_loader, open_evaluation, open_metadata
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
@@ -54,6 +55,7 @@ class RoundEnd:
 
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
         set_trainable(self.bundle, arrays)
+        self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         metrics = None
         if server_round == 0 or self.run.evaluates_in(server_round):
             metrics = evaluate(self.bundle, self.split, self.loader, self.run.eval_batches, self.run.seed)
@@ -78,13 +80,17 @@ class RoundEnd:
 def main(grid: Grid, context: Context) -> None:
     """Validate the config, build the global model, run FedProx, write artifacts every round."""
     setup_logging("server")
-    run = from_run_config(dict(context.run_config))
-    registry = load_registry(run.registry)
+    try:
+        run = from_run_config(dict(context.run_config))
+        registry = load_registry(run.registry)
+        entry = registry.get(run.server_eval_dataset)
+    except Zk0Error as err:
+        logger.error("zk0: {}", err)  # the one sentence, before Flower's own report of the failure
+        raise
     run_dir = new_run_dir(run.output_dir)
     add_file_sink(run_dir / "server" / "server.log", "server")
     logger.info("Run {} writing to {}", context.run_id, run_dir)
 
-    entry = registry.get(run.server_eval_dataset)
     meta = open_metadata(entry)
     bundle = build_policy(run, meta, entry, registry.model_cameras())
     initial = get_trainable(bundle)

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from filelock import FileLock
 
+from zk0.errors import Zk0Error
 from zk0.assets.backbone import build_tiny_backbone
 from zk0.assets.datasets import SPECS, write_synthetic_dataset
 
@@ -26,7 +27,7 @@ MANIFEST = "zk0_manifest.json"
 TINY_BACKBONE = "tiny-smolvlm"
 
 
-class AssetError(ValueError):
+class AssetError(Zk0Error):
     """A bad asset request; the message is one sentence naming the bad value."""
 
 
@@ -109,8 +110,5 @@ def ensure_all(root: Path | None = None, seed: int = 0) -> dict[str, Path]:
 
 
 def _quiet_video_encoders() -> None:
-    """SVT-AV1 and libav print per-video banners to stderr; keep only their errors."""
+    """SVT-AV1 prints a banner per video to stderr; keep only its errors."""
     os.environ.setdefault("SVT_LOG", "1")
-    import av.logging
-
-    av.logging.set_level(av.logging.ERROR)

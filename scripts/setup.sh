@@ -1,0 +1,85 @@
+#!/usr/bin/env bash
+# Shared set-up for ./train.sh and ./test.sh (sourced, not run): finds a Python >= 3.12,
+# creates .venv if missing, installs the project when pyproject.toml changed, installs
+# FFmpeg where it can (torchcodec needs its shared libraries), and exports the
+# environment the Flower CLI and the apps need. Prints one sentence and returns non-zero
+# on failure.
+
+ZK0_ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+ZK0_VENV="$ZK0_ROOT/.venv"
+
+zk0_log() { printf '[zk0] %s\n' "$*" >&2; }
+
+# Print the path of a Python >= 3.12, or nothing.
+zk0_find_python() {
+    local candidate
+    for candidate in "${ZK0_PYTHON:-}" python3.13 python3.12 python3; do
+        [ -n "$candidate" ] || continue
+        if command -v "$candidate" >/dev/null 2>&1 &&
+            "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then
+            command -v "$candidate"
+            return 0
+        fi
+    done
+    if command -v uv >/dev/null 2>&1; then
+        candidate="$(uv python find '>=3.12' 2>/dev/null)" && [ -n "$candidate" ] && { echo "$candidate"; return 0; }
+    fi
+    for candidate in "${PYENV_ROOT:-$HOME/.pyenv}"/versions/3.1[2-9]*/bin/python3 /root/.pyenv/versions/3.1[2-9]*/bin/python3; do
+        if [ -x "$candidate" ]; then
+            echo "$candidate"
+            return 0
+        fi
+    done
+    return 1
+}
+
+zk0_ensure_ffmpeg() {
+    if ldconfig -p 2>/dev/null | grep -q 'libavutil\.so'; then
+        return 0
+    fi
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        zk0_log "Installing FFmpeg (torchcodec decodes video with it)..."
+        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq ffmpeg; } >/dev/null 2>&1; then
+            return 0
+        fi
+    fi
+    zk0_log "FFmpeg libraries not found and not installable here; lerobot will decode video with PyAV (install 'ffmpeg' for torchcodec)."
+}
+
+zk0_ensure_venv() {
+    local python stamp want
+    if [ ! -x "$ZK0_VENV/bin/python" ]; then
+        python="$(zk0_find_python)" || {
+            zk0_log "No Python >= 3.12 found (looked for python3.13/python3.12/python3 on PATH, uv, and pyenv versions); install one or set ZK0_PYTHON."
+            return 1
+        }
+        zk0_log "Creating .venv with $python"
+        "$python" -m venv "$ZK0_VENV" || { zk0_log "Could not create $ZK0_VENV with $python."; return 1; }
+    fi
+    stamp="$ZK0_VENV/.zk0-installed"
+    want="$(sha256sum "$ZK0_ROOT/pyproject.toml" | cut -d' ' -f1)"
+    if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+        zk0_log "Installing zk0 and its dependencies into .venv (first time: a few minutes)..."
+        if ! "$ZK0_VENV/bin/python" -m pip install -q --disable-pip-version-check -e "$ZK0_ROOT[test]"; then
+            zk0_log "Installing the project into .venv failed; see pip's message above."
+            return 1
+        fi
+        echo "$want" >"$stamp"
+    fi
+}
+
+zk0_export_env() {
+    export PATH="$ZK0_VENV/bin:$PATH"
+    export FLWR_HOME="${FLWR_HOME:-$ZK0_ROOT/.flwr}"
+    mkdir -p "$FLWR_HOME"
+    cp "$ZK0_ROOT/configs/flower.toml" "$FLWR_HOME/config.toml"  # the project owns this Flower config
+    # The SuperLink would otherwise `uv sync` the app's dependencies into a fresh env every run.
+    export FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION=1
+    export SVT_LOG="${SVT_LOG:-1}"
+}
+
+zk0_setup() {
+    zk0_ensure_ffmpeg
+    zk0_ensure_venv || return 1
+    zk0_export_env
+}

@@ -1,0 +1,43 @@
+"""Shared fixtures: an isolated asset cache, offline Hub, and the tiny policy on a client dataset."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+# One cache for the whole test session, shared by xdist workers (generation is locked).
+os.environ.setdefault("ZK0_CACHE", str(REPO / ".cache" / "zk0-tests"))
+os.environ["HF_HUB_OFFLINE"] = "1"
+os.environ.setdefault("SVT_LOG", "1")
+
+
+@pytest.fixture(scope="session")
+def registry():
+    from zk0.registry import load_registry
+
+    return load_registry()
+
+
+@pytest.fixture
+def run_config():
+    from zk0.config import from_run_config
+
+    return from_run_config({"batch-size": 4, "lr": 1e-3, "local-steps": 5})
+
+
+@pytest.fixture
+def client_parts(registry, run_config):
+    """Policy bundle, dataset split and trainer for client 0, built the way the ClientApp builds them."""
+    from zk0.data import open_metadata, open_split, train_loader
+    from zk0.policy import build_policy
+    from zk0.training import LocalTrainer
+
+    entry = registry.clients[0]
+    meta = open_metadata(entry)
+    bundle = build_policy(run_config, meta, entry, registry.model_cameras())
+    split = open_split(entry, meta, bundle.policy.config, run_config)
+    trainer = LocalTrainer(bundle, split, train_loader(split.train, run_config, bundle.device), run_config)
+    return bundle, split, trainer

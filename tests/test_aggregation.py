@@ -1,0 +1,92 @@
+"""Update validation and FedAvg weighting, on real Flower Messages."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from flwr.app import ArrayRecord, ConfigRecord, Error, Message, MessageType, MetricRecord, RecordDict
+
+from flwr.supercore.task_identity import TaskIdentity
+
+from zk0.aggregation import ValidatingFedProx, array_signature, update_problem
+
+
+@pytest.fixture(autouse=True)
+def server_identity():
+    """Flower's runtime sets who is sending; here the test plays the ServerApp of run 1."""
+    TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 1, 1, 0
+
+
+
+def arrays(a: float, b: float = 0.0, a_shape=(2, 3)) -> ArrayRecord:
+    import torch
+
+    return ArrayRecord({"a": torch.full(a_shape, a), "b": torch.full((4,), b)})
+
+
+def reply(node: int, record: ArrayRecord, examples: int) -> Message:
+    instruction = Message(
+        content=RecordDict({"arrays": arrays(0.0), "config": ConfigRecord({})}),
+        dst_node_id=node,
+        message_type=MessageType.TRAIN,
+    )
+    metrics = MetricRecord({"num-examples": examples, "train-loss": float(node), "dataset-index": node})
+    return Message(content=RecordDict({"arrays": record, "metrics": metrics}), reply_to=instruction)
+
+
+def failed(node: int) -> Message:
+    instruction = Message(content=RecordDict({}), dst_node_id=node, message_type=MessageType.TRAIN)
+    return Message(Error(code=0, reason="client crashed"), reply_to=instruction)
+
+
+@pytest.fixture
+def strategy():
+    recorded = []
+    strat = ValidatingFedProx(
+        expected=array_signature(arrays(0.0)),
+        evaluates_in=lambda rnd: rnd % 2 == 0,
+        recorder=lambda phase, rnd, replies, agg: recorded.append((phase, rnd, len(replies), agg)),
+        proximal_mu=0.01,
+        min_train_nodes=2,
+    )
+    strat.recorded = recorded
+    return strat
+
+
+def test_update_problems_are_named():
+    expected = array_signature(arrays(0.0))
+    assert update_problem(arrays(1.0), expected) is None
+    assert "NaN" in update_problem(arrays(float("nan")), expected)
+    assert "infinite" in update_problem(arrays(0.0, float("inf")), expected)
+    assert "expected float32[2, 3]" in update_problem(arrays(1.0, a_shape=(3, 2)), expected)
+    assert "missing ['b']" in update_problem(ArrayRecord({"a": arrays(1.0)["a"]}), expected)
+
+
+def test_average_is_weighted_by_samples_and_skips_bad_updates(strategy):
+    replies = [
+        reply(1, arrays(1.0, 10.0), examples=10),
+        reply(2, arrays(4.0, 40.0), examples=30),
+        reply(3, arrays(float("nan")), examples=1000),
+        reply(4, arrays(9.0, a_shape=(3, 2)), examples=1000),
+        failed(5),
+    ]
+    result, metrics = strategy.aggregate_train(1, replies)
+    assert result is not None, "the round completes with the two valid updates"
+    np.testing.assert_allclose(result["a"].numpy(), np.full((2, 3), (1 * 10 + 4 * 30) / 40))
+    np.testing.assert_allclose(result["b"].numpy(), np.full(4, (10 * 10 + 40 * 30) / 40))
+    assert metrics["train-loss"] == pytest.approx((1 * 10 + 2 * 30) / 40)
+    assert strategy.recorded == [("train", 1, 2, metrics)]
+
+
+def test_too_few_valid_updates_keep_the_global_model(strategy):
+    result, metrics = strategy.aggregate_train(1, [reply(1, arrays(1.0), 10), reply(2, arrays(float("nan")), 10)])
+    assert (result, metrics) == (None, None)
+    assert strategy.recorded == [("train", 1, 1, None)]
+
+
+def test_federated_evaluation_follows_the_schedule(strategy):
+    class NoNodes:
+        def get_node_ids(self):
+            return []
+
+    assert list(strategy.configure_evaluate(1, arrays(0.0), ConfigRecord({}), NoNodes())) == []

@@ -1,0 +1,106 @@
+"""The offline assets: real LeRobotDatasets with decodable video, a tiny backbone, determinism."""
+
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+import torch
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from transformers import AutoProcessor
+
+from zk0.assets import AssetError, ensure_backbone, ensure_dataset, synthetic_dataset_root
+from zk0.assets.datasets import COLOURS, JOINT_NAMES, SPECS, write_synthetic_dataset
+
+
+@pytest.mark.parametrize("name", sorted(SPECS))
+def test_each_synthetic_dataset_opens_and_decodes_a_frame(name):
+    spec = SPECS[name]
+    root = ensure_dataset(name)
+    dataset = LeRobotDataset(spec.repo_id, root=root)
+    assert dataset.num_episodes == spec.episodes
+    assert dataset.num_frames == spec.episodes * spec.frames_per_episode
+    assert dataset.meta.robot_type == spec.robot_type
+    assert dataset.meta.features["observation.state"]["names"] == list(JOINT_NAMES)
+    item = dataset[spec.frames_per_episode + 3]
+    for camera in spec.cameras:
+        frame = item[f"observation.images.{camera}"]
+        assert frame.shape == (3, spec.height, spec.width)
+        assert frame.std() > 0.01  # a real picture, not a blank
+    colour = next(c for c in spec.colours if c in item["task"])
+    target = torch.tensor(COLOURS[colour], dtype=torch.float32) / 255
+    scene = item[f"observation.images.{spec.cameras[0]}"]
+    distance = (scene - target[:, None, None]).abs().sum(dim=0)
+    assert (distance < 0.35).sum() >= 4, "the target named in the task is visible in the scene camera"
+
+
+def test_state_moves_toward_a_target_dependent_pose():
+    spec = SPECS["synth-so100-pickplace"]
+    dataset = LeRobotDataset(spec.repo_id, root=ensure_dataset(spec.name))
+    states = torch.stack([dataset[i]["observation.state"] for i in range(spec.frames_per_episode)])
+    actions = torch.stack([dataset[i]["action"] for i in range(spec.frames_per_episode)])
+    torch.testing.assert_close(actions[:-1], states[1:])  # action = next commanded joint positions
+    steps = (states[1:] - states[:-1]).norm(dim=1)
+    assert steps[-3:].mean() < steps[:3].mean() / 3, "the arm settles on its target"
+
+
+def test_generator_is_deterministic_in_its_seed(tmp_path):
+    spec = SPECS["synth-so101-reach"]
+
+    def parquet_digest(root):
+        files = sorted((root / "data").rglob("*.parquet"))
+        return hashlib.sha256(b"".join(f.read_bytes() for f in files)).hexdigest()
+
+    a = write_synthetic_dataset(spec, tmp_path / "a", seed=7, episodes=2)
+    b = write_synthetic_dataset(spec, tmp_path / "b", seed=7, episodes=2)
+    c = write_synthetic_dataset(spec, tmp_path / "c", seed=8, episodes=2)
+    assert parquet_digest(a) == parquet_digest(b)
+    assert parquet_digest(a) != parquet_digest(c)
+
+
+def test_tiny_backbone_builds_a_small_smolvla(registry):
+    from zk0.config import RunConfig
+    from zk0.data import open_metadata
+    from zk0.policy import build_policy
+
+    processor = AutoProcessor.from_pretrained(ensure_backbone())
+    assert processor.tokenizer.fake_image_token_id != processor.tokenizer.unk_token_id
+    entry = registry.clients[0]
+    bundle = build_policy(RunConfig(), open_metadata(entry), entry, registry.model_cameras())
+    total = sum(p.numel() for p in bundle.policy.parameters())
+    assert type(bundle.policy).__name__ == "SmolVLAPolicy"
+    assert total < 1_000_000
+
+
+def test_stale_asset_is_regenerated(tmp_path):
+    first = ensure_dataset("synth-so100-eval", tmp_path, episodes=1)
+    marker = first / "meta" / "info.json"
+    assert LeRobotDataset("zk0/synth_so100_eval", root=first).num_episodes == 1
+    ensure_dataset("synth-so100-eval", tmp_path, episodes=2)
+    assert marker.exists()
+    assert LeRobotDataset("zk0/synth_so100_eval", root=first).num_episodes == 2
+
+
+@pytest.mark.parametrize(
+    ("call", "needle"),
+    [
+        (lambda tmp: synthetic_dataset_root("synth-nope", tmp), "'synth-nope'"),
+        (lambda tmp: ensure_dataset("synth-so100-eval", tmp, episodes=-3), "-3"),
+        (lambda tmp: ensure_backbone(tmp / "file.txt" / "cache"), "not writable"),
+    ],
+)
+def test_bad_asset_requests_fail_with_one_sentence(tmp_path, call, needle):
+    (tmp_path / "file.txt").write_text("not a directory")
+    with pytest.raises(AssetError) as err:
+        call(tmp_path)
+    message = str(err.value)
+    assert needle in message and message.endswith(".") and "\n" not in message
+
+
+def test_cli_assets_prints_paths_and_rejects_bad_names(tmp_path, capsys):
+    from zk0.cli import main
+
+    assert main(["assets", "--cache-dir", str(tmp_path), "--only", "tiny-smolvlm"]) == 0
+    assert str(tmp_path / "backbones" / "tiny-smolvlm") in capsys.readouterr().out
+    assert main(["assets", "--cache-dir", str(tmp_path), "--only", "synth-nope"]) == 2
+    assert "'synth-nope'" in capsys.readouterr().err

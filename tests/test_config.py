@@ -1,0 +1,55 @@
+"""Run-config validation: defaults equal pyproject, bad values fail with one sentence."""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+
+import pytest
+
+from zk0.config import ConfigError, RunConfig, from_run_config
+from zk0.registry import PROJECT_ROOT
+
+
+def test_defaults_equal_the_pyproject_table():
+    table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
+    assert from_run_config(table) == RunConfig()
+    assert set(table) == set(RunConfig().to_flat())
+
+
+def test_overrides_are_applied():
+    cfg = from_run_config({"num-server-rounds": 5, "local-steps": 10, "lr": 1, "proximal-mu": 0})
+    assert (cfg.num_server_rounds, cfg.local_steps, cfg.total_steps) == (5, 10, 50)
+    assert cfg.proximal_mu == 0.0 and isinstance(cfg.proximal_mu, float) and isinstance(cfg.lr, float)
+
+
+def test_local_epochs_is_an_alias_of_local_steps():
+    assert from_run_config({"local-epochs": 7}).local_steps == 7
+    assert from_run_config({"local-epochs": 0, "local-steps": 3}).local_steps == 3
+
+
+@pytest.mark.parametrize(
+    ("overrides", "needles"),
+    [
+        ({"num-rounds": 3}, ["'num-rounds'", "num-server-rounds"]),
+        ({"local-steps": "ten"}, ["'local-steps'", "'ten'", "int"]),
+        ({"local-steps": 2.5}, ["'local-steps'", "2.5", "int"]),
+        ({"use-wandb": 1}, ["'use-wandb'", "bool"]),
+        ({"local-steps": 0}, ["'local-steps'", ">= 1"]),
+        ({"fraction-train": 0.0}, ["'fraction-train'", "> 0"]),
+        ({"fraction-evaluate": 1.5}, ["'fraction-evaluate'", "<= 1"]),
+        ({"lr": -1e-4}, ["'lr'", "-0.0001"]),
+        ({"device": "tpu"}, ["'device'", "'tpu'"]),
+    ],
+)
+def test_bad_values_fail_with_one_sentence(overrides, needles):
+    with pytest.raises(ConfigError) as err:
+        from_run_config(overrides)
+    message = str(err.value)
+    assert all(n in message for n in needles), message
+    assert message.endswith(".") and "\n" not in message
+
+
+def test_evaluation_schedule():
+    cfg = dataclasses.replace(RunConfig(), num_server_rounds=5, eval_frequency=2)
+    assert [r for r in range(1, 6) if cfg.evaluates_in(r)] == [2, 4, 5]

@@ -1,0 +1,69 @@
+"""The dataset registry and the camera mapping onto the global model's inputs."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from zk0.config import RunConfig
+from zk0.data import DataError, open_metadata, split_episodes
+from zk0.policy import PolicyError, model_features
+from zk0.registry import RegistryError, load_registry
+
+
+def test_project_registry_lists_four_clients_and_a_server_dataset(registry):
+    assert [e.name for e in registry.clients] == [
+        "synth-so100-pickplace", "synth-so100-stacking", "synth-so101-sorting", "synth-so101-reach"
+    ]
+    assert registry.get("synth-so100-eval").role == "server"
+    assert registry.get("zk0/synth_so100_stacking").name == "synth-so100-stacking"
+    assert registry.model_cameras() == ["observation.images.camera1", "observation.images.camera2"]
+
+
+def test_differently_named_cameras_map_to_identical_model_inputs(registry):
+    keys = set()
+    for entry in registry.clients[:3]:  # front/wrist, laptop/phone, top/wrist
+        meta = open_metadata(entry)
+        keys.add(tuple(model_features(meta, entry, registry.model_cameras())))
+    assert keys == {("observation.images.camera1", "observation.images.camera2", "observation.state", "action")}
+
+
+def test_unmapped_camera_is_refused_with_the_dataset_name(registry):
+    entry = registry.clients[1]
+    entry = dataclasses.replace(entry, cameras={"laptop": "camera1"})
+    with pytest.raises(PolicyError, match="'synth-so100-stacking' maps its cameras"):
+        model_features(open_metadata(entry), entry, registry.model_cameras())
+
+
+@pytest.mark.parametrize(
+    ("table", "needle"),
+    [
+        ('[tool.zk0.datasets.a]\nrepo_id = "x/a"\ncameras = { top = "camera1" }\nrole = "judge"\n', "role 'judge'"),
+        ('[tool.zk0.datasets.a]\nrepo_id = "x/a"\n', "maps no cameras"),
+        ('[tool.zk0.datasets.a]\ncameras = { top = "camera1" }\n', "'a' is invalid"),
+        ('[tool.zk0.datasets.b]\nrepo_id = "x/b"\nsynthetic = true\ncameras = { top = "camera1" }\n', "synthetic"),
+        ("[tool.other]\n", "no [tool.zk0.datasets]"),
+    ],
+)
+def test_bad_registry_files_fail_with_one_sentence(tmp_path, table, needle):
+    path = tmp_path / "registry.toml"
+    path.write_text(table)
+    with pytest.raises(RegistryError) as err:
+        load_registry(path)
+    assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+def test_lookups_name_the_bad_value(registry):
+    with pytest.raises(RegistryError, match="Partition id 4 has no dataset"):
+        registry.for_partition(4)
+    with pytest.raises(RegistryError, match="'lerobot/nope' is not in the registry"):
+        registry.get("lerobot/nope")
+    with pytest.raises(RegistryError, match="cannot be read"):
+        load_registry("/nonexistent/registry.toml")
+
+
+def test_last_episodes_are_held_out():
+    assert split_episodes(6, 2, "d") == ([0, 1, 2, 3], [4, 5])
+    with pytest.raises(DataError, match="eval-episodes=6 leaves none to train on"):
+        split_episodes(6, RunConfig(eval_episodes=6).eval_episodes, "d")

@@ -1,0 +1,121 @@
+"""Local training through lerobot's update_policy, the FedProx term, the schedule, evaluation."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+
+import pytest
+import torch
+from lerobot.optim import CosineDecayWithWarmupSchedulerConfig
+
+from zk0.config import RunConfig
+from zk0.data import eval_loader, open_metadata, open_split, train_loader
+from zk0.policy import PolicyError, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.training import FedProx, LocalTrainer, TrainingError, evaluate, set_schedule_step
+
+
+def test_twenty_update_policy_steps_lower_the_loss(client_parts):
+    bundle, split, trainer = client_parts
+    fixed = eval_loader(split.train, trainer.run)  # training frames, fixed order, seeded noise
+    before = evaluate(bundle, split, fixed, max_batches=3, seed=0)["policy-loss"]
+    metrics = trainer.fit(steps=20, mu=0.0, global_step=0)
+    after = evaluate(bundle, split, fixed, max_batches=3, seed=0)["policy-loss"]
+    assert metrics["num-examples"] == 20 * trainer.run.batch_size
+    assert metrics["skipped-batches"] == 0 and metrics["step-time"] > 0
+    assert after < 0.9 * before, (before, after)
+
+
+def test_fedprox_gradient_is_mu_times_distance_to_global():
+    weight = torch.nn.Parameter(torch.tensor([1.0, -2.0, 3.0]))
+    prox = FedProx({"w": weight})
+    prox.anchor_at(mu=0.5)
+    delta = torch.tensor([0.2, 0.4, -1.0])
+    with torch.no_grad():
+        weight.add_(delta)
+    (weight * 0).sum().backward()  # a loss with zero gradient: only the proximal term remains
+    torch.testing.assert_close(weight.grad, 0.5 * delta)
+    assert prox.loss() == pytest.approx(0.5 / 2 * float((delta**2).sum()))
+
+
+def test_fedprox_adds_its_gradient_to_the_policy_loss_gradient(client_parts):
+    bundle, split, trainer = client_parts
+    name = bundle.trainable_names[0]
+    param = dict(bundle.policy.named_parameters())[name]
+    trainer.fedprox.anchor_at(mu=0.0)
+    with torch.no_grad():
+        param.add_(0.1)
+    (param.sum() * 2).backward()
+    plain = param.grad.clone()
+    param.grad = None
+    trainer.fedprox.mu = 0.3
+    (param.sum() * 2).backward()
+    torch.testing.assert_close(param.grad - plain, torch.full_like(plain, 0.3 * 0.1), rtol=1e-4, atol=1e-6)
+    param.grad = None
+
+
+def test_schedule_follows_the_global_step_not_the_round():
+    def scheduler():
+        opt = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=1e-4)
+        cfg = CosineDecayWithWarmupSchedulerConfig(peak_lr=1e-4, decay_lr=1e-6, num_warmup_steps=10, num_decay_steps=100)
+        return cfg.build(opt, 100)
+
+    stepped, jumped = scheduler(), scheduler()
+    for _ in range(25):
+        stepped.optimizer.step()
+        stepped.step()
+    set_schedule_step(jumped, 25)
+    assert jumped.optimizer.param_groups[0]["lr"] == pytest.approx(stepped.optimizer.param_groups[0]["lr"])
+    assert jumped.get_last_lr() == pytest.approx(stepped.get_last_lr())
+
+
+def test_client_resumes_the_schedule_in_later_rounds(client_parts):
+    _, _, trainer = client_parts
+    trainer.fit(steps=2, mu=0.01, global_step=0)
+    assert trainer.scheduler.last_epoch == 2
+    trainer.fit(steps=2, mu=0.01, global_step=6)  # round 4 of a 2-step run, sampled again
+    assert trainer.scheduler.last_epoch == 8
+
+
+def test_evaluation_is_seeded_and_reports_unnormalised_mse(client_parts):
+    bundle, split, trainer = client_parts
+    loader = eval_loader(split.evaluation, trainer.run)
+    first, second = (evaluate(bundle, split, loader, max_batches=2, seed=3) for _ in range(2))
+    assert first == second
+    assert first["num-examples"] == 2 * trainer.run.batch_size
+    assert first["action-mse"] > 1.0  # joint positions in degrees, not normalised units
+
+
+def test_only_trainable_parameters_travel_and_backbones_match(registry, client_parts):
+    bundle, _, _ = client_parts
+    arrays = get_trainable(bundle)
+    trainable = {n for n, p in bundle.policy.named_parameters() if p.requires_grad}
+    assert set(arrays.keys()) == trainable
+    assert len(trainable) < len(list(bundle.policy.parameters()))
+    entry = registry.get("synth-so100-eval")
+    server = build_policy(RunConfig(), open_metadata(entry), entry, registry.model_cameras())
+    assert backbone_fingerprint(server) == backbone_fingerprint(bundle)
+    other = build_policy(RunConfig(seed=7), open_metadata(entry), entry, registry.model_cameras())
+    assert backbone_fingerprint(other) != backbone_fingerprint(bundle)
+    set_trainable(server, arrays)
+    for name, value in get_trainable(server).items():
+        assert (value.numpy() == arrays[name].numpy()).all()
+    del arrays[bundle.trainable_names[0]]
+    with pytest.raises(PolicyError, match="do not match"):
+        set_trainable(server, arrays)
+
+
+def test_undecodable_video_fails_the_round_with_a_clear_error(tmp_path, registry):
+    entry = registry.clients[0]
+    copy = tmp_path / "broken"
+    shutil.copytree(entry.local_root(), copy)
+    for video in copy.rglob("*.mp4"):
+        video.write_bytes(video.read_bytes()[:200])
+    broken = dataclasses.replace(entry, synthetic=False, root=str(copy))
+    run = RunConfig(batch_size=4)
+    meta = open_metadata(broken)
+    bundle = build_policy(run, meta, broken, registry.model_cameras())
+    split = open_split(broken, meta, bundle.policy.config, run)
+    trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+    with pytest.raises(TrainingError, match="could not be decoded, more than max-skip-fraction=0.1"):
+        trainer.fit(steps=2, mu=0.0, global_step=0)

@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# zk0 quick start: set up .venv if needed, then run a federation with `flwr run`.
+set -euo pipefail
+
+usage() {
+    cat <<'USAGE'
+Usage: ./train.sh [options]
+
+Sets up .venv on first use (finds Python >= 3.12, installs zk0, FFmpeg where possible),
+then runs the zk0 Flower app with `flwr run . <connection> --stream` and prints where the
+outputs are. With no options: the quick federation (4 simulated SO-100/SO-101 clients,
+1 round, 2 local steps, tiny offline SmolVLA on CPU).
+
+Options:
+  -c, --connection NAME   Flower connection from configs/flower.toml:
+                          local (CPU, default), local-gpu (4 clients share one GPU),
+                          local-gpu-serial (one client at a time holds the GPU)
+  -r, --run-config STR    run-config overrides, e.g. "num-server-rounds=5 local-steps=20";
+                          repeatable; keys are listed in pyproject.toml [tool.flwr.app.config]
+      --setup-only        set up .venv and the offline assets, then stop
+  -h, --help              show this help
+USAGE
+}
+
+connection="local"
+setup_only=0
+overrides=()
+while [ $# -gt 0 ]; do
+    case "$1" in
+    -c | --connection) [ $# -ge 2 ] || { echo "train.sh: $1 needs a value (a connection name such as local)." >&2; exit 2; }
+        connection="$2"; shift 2 ;;
+    -r | --run-config) [ $# -ge 2 ] || { echo "train.sh: $1 needs a value such as \"num-server-rounds=3\"." >&2; exit 2; }
+        overrides+=(--run-config "$2"); shift 2 ;;
+    --setup-only) setup_only=1; shift ;;
+    -h | --help) usage; exit 0 ;;
+    *) echo "train.sh: unknown option '$1'; see ./train.sh --help." >&2; exit 2 ;;
+    esac
+done
+case "$connection" in
+local | local-gpu | local-gpu-serial) ;;
+*) echo "train.sh: unknown connection '$connection'; expected local, local-gpu or local-gpu-serial." >&2; exit 2 ;;
+esac
+
+source "$(dirname "$0")/scripts/setup.sh"
+zk0_setup
+cd "$ZK0_ROOT"
+zk0 check "${overrides[@]}" >/dev/null || exit 2
+zk0 assets >/dev/null
+if [ "$setup_only" = 1 ]; then
+    zk0_log "Set-up complete; run ./train.sh to start the quick federation."
+    exit 0
+fi
+
+# `flwr run` starts a local SuperLink in the background when none is running; stop the one
+# it starts for this run so nothing lingers after the script.
+port="${FLWR_LOCAL_SUPERLINK_HTTP_API_PORT:-39091}"
+if ! pgrep -f "flower-superlink.*--port $port" >/dev/null; then
+    trap 'pkill -f "flower-superlink.*--port $port" || true' EXIT
+fi
+
+zk0_log "Starting the federation (connection: $connection)..."
+log="$(mktemp)"
+flwr run . "$connection" --stream --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}" 2>&1 | tee "$log"
+# `flwr run --stream` exits 0 even when the ServerApp fails; Flower prints an exit code then.
+if grep -q "Exit Code: [1-9]" "$log"; then
+    rm -f "$log"
+    zk0_log "The federation failed; the reason is in the log above."
+    exit 1
+fi
+rm -f "$log"
+latest="$(ls -td "$ZK0_ROOT"/outputs/*/ 2>/dev/null | head -n 1)"
+zk0_log "Outputs: ${latest:-none written (see the log above)}"
