@@ -7,14 +7,14 @@ usage() {
 Usage: ./train.sh [options]
 
 Sets up .venv on first use (finds Python >= 3.12, installs zk0, FFmpeg where possible),
-then runs the zk0 Flower app with `flwr run . <connection> --stream` and prints where the
+then runs the zk0 Flower app with `flwr run . local --stream` and prints where the
 outputs are. With no options: the quick federation (4 simulated SO-100/SO-101 clients,
 1 round, 2 local steps, tiny offline SmolVLA on CPU).
 
 Options:
-  -c, --connection NAME   Flower connection from configs/flower.toml:
-                          local (CPU, default), local-gpu (4 clients share one GPU),
-                          local-gpu-serial (one client at a time holds the GPU)
+  -m, --mode MODE         simulation mode, a file in configs/federation/:
+                          cpu (default: 4 clients, one CPU each), gpu (4 clients share
+                          one GPU), gpu-serial (one client at a time holds the whole GPU)
   -r, --run-config STR    run-config overrides, e.g. "num-server-rounds=5 local-steps=20";
                           repeatable; keys are listed in pyproject.toml [tool.flwr.app.config]
       --setup-only        set up .venv and the offline assets, then stop
@@ -22,13 +22,13 @@ Options:
 USAGE
 }
 
-connection="local"
+mode="cpu"
 setup_only=0
 overrides=()
 while [ $# -gt 0 ]; do
     case "$1" in
-    -c | --connection) [ $# -ge 2 ] || { echo "train.sh: $1 needs a value (a connection name such as local)." >&2; exit 2; }
-        connection="$2"; shift 2 ;;
+    -m | --mode) [ $# -ge 2 ] || { echo "train.sh: $1 needs a value: cpu, gpu or gpu-serial." >&2; exit 2; }
+        mode="$2"; shift 2 ;;
     -r | --run-config) [ $# -ge 2 ] || { echo "train.sh: $1 needs a value such as \"num-server-rounds=3\"." >&2; exit 2; }
         overrides+=(--run-config "$2"); shift 2 ;;
     --setup-only) setup_only=1; shift ;;
@@ -36,9 +36,9 @@ while [ $# -gt 0 ]; do
     *) echo "train.sh: unknown option '$1'; see ./train.sh --help." >&2; exit 2 ;;
     esac
 done
-case "$connection" in
-local | local-gpu | local-gpu-serial) ;;
-*) echo "train.sh: unknown connection '$connection'; expected local, local-gpu or local-gpu-serial." >&2; exit 2 ;;
+case "$mode" in
+cpu | gpu | gpu-serial) ;;
+*) echo "train.sh: unknown mode '$mode'; expected cpu, gpu or gpu-serial." >&2; exit 2 ;;
 esac
 
 source "$(dirname "$0")/scripts/setup.sh"
@@ -58,9 +58,9 @@ if ! pgrep -f "flower-superlink.*--port $port" >/dev/null; then
     trap 'pkill -f "flower-superlink.*--port $port" || true' EXIT
 fi
 
-zk0_log "Starting the federation (connection: $connection)..."
+zk0_log "Starting the federation (mode: $mode)..."
 log="$(mktemp)"
-flwr run . "$connection" --stream --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}" 2>&1 | tee "$log"
+flwr run . local --stream --federation-config "configs/federation/$mode.toml" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}" 2>&1 | tee "$log"
 # `flwr run --stream` exits 0 even when the ServerApp fails; Flower prints an exit code then.
 if grep -q "Exit Code: [1-9]" "$log"; then
     rm -f "$log"

@@ -4,10 +4,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,55 +13,19 @@ from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from lerobot.processor import PolicyProcessorPipeline
 from lerobot.processor.converters import batch_to_transition, transition_to_batch
 
-REPO = Path(__file__).resolve().parents[1]
-FLWR = str(Path(sys.executable).with_name("flwr"))
-FLOWER_CONFIG = """
-[superlink]
-default = "test"
-
-[superlink.test]
-address = ":local:"
-options.num-supernodes = 2
-options.backend.client-resources.num-cpus = 1
-options.backend.client-resources.num-gpus = 0.0
-"""
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+from zk0.simulation import flwr_run, local_federation
 
 
 @pytest.fixture(scope="module")
 def flower_env(tmp_path_factory):
-    """A private Flower home and SuperLink ports; the SuperLink `flwr run` starts is stopped afterwards."""
-    home = tmp_path_factory.mktemp("flwr-home")
-    (home / "config.toml").write_text(FLOWER_CONFIG)
-    port, control = free_port(), free_port()
-    env = {
-        **os.environ,
-        "FLWR_HOME": str(home),
-        "FLWR_LOCAL_SUPERLINK_HTTP_API_PORT": str(port),
-        "FLWR_LOCAL_CONTROL_API_PORT": str(control),
-        "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1",
-        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}",
-    }
-    yield env
-    subprocess.run(["pkill", "-f", f"flower-superlink.*--port {port}"], check=False)
-
-
-def flwr_run(env: dict, overrides: str) -> str:
-    done = subprocess.run(
-        [FLWR, "run", str(REPO), "test", "--stream", "--run-config", overrides],
-        env=env, cwd=REPO, capture_output=True, text=True, timeout=900, check=False,
-    )
-    return done.stdout + done.stderr
+    """A private Flower home and SuperLink for this module's runs (stopped afterwards)."""
+    with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
+        yield env
 
 
 def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     out = tmp_path / "outputs"
-    log = flwr_run(flower_env, f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'")
+    log = flwr_run(flower_env, f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'", 2)
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]
     run = runs[0]
@@ -116,6 +76,6 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
 
 def test_bad_run_config_fails_before_training_in_one_sentence(flower_env, tmp_path):
     out = tmp_path / "outputs"
-    log = flwr_run(flower_env, f"local-steps=0 output-dir='{out}'")
+    log = flwr_run(flower_env, f"local-steps=0 output-dir='{out}'", 2)
     assert "zk0: Run-config key 'local-steps' got 0; expected a value >= 1." in log
     assert not out.exists(), "nothing is written for a run that never starts"

@@ -24,6 +24,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from zk0.policy import PolicyBundle  # noqa: E402
 
@@ -101,6 +102,7 @@ class History:
         _line(ax, [(r, self.rounds[r].get("aggregate-evaluate", {}).get(metric)) for r in rounds], "clients (weighted)", "--", 2.0)
         _line(ax, [(r, self.rounds[r].get("server-evaluate", {}).get(metric)) for r in rounds], "server eval", "-", 2.5)
         ax.set(xlabel="round", ylabel=metric, title=f"{metric} per round")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
         if ax.lines:
             ax.legend(fontsize=8)

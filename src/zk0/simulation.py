@@ -1,0 +1,61 @@
+"""Run the zk0 app with the real `flwr run` on a private local simulation SuperLink.
+
+Benchmarks and tests use this so they exercise exactly what users run: the Flower CLI
+builds the app bundle, a local SuperLink runs the ServerApp and the simulated
+SuperNodes. A private ``FLWR_HOME`` and free ports keep it apart from any other
+SuperLink on the machine, and the SuperLink is stopped afterwards.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from zk0.registry import PROJECT_ROOT
+
+CONNECTION = "zk0-sim"
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+FLOWER_CONFIG = f'[superlink]\ndefault = "{CONNECTION}"\n\n[superlink.{CONNECTION}]\naddress = ":local:"\n'
+
+
+@contextmanager
+def local_federation(home: Path) -> Iterator[dict[str, str]]:
+    """The environment for `flwr run` against a private SuperLink; stops that SuperLink on exit."""
+    home.mkdir(parents=True, exist_ok=True)
+    (home / "config.toml").write_text(FLOWER_CONFIG)
+    port = _free_port()
+    env = {
+        **os.environ,
+        "FLWR_HOME": str(home),
+        "FLWR_LOCAL_SUPERLINK_HTTP_API_PORT": str(port),
+        "FLWR_LOCAL_CONTROL_API_PORT": str(_free_port()),
+        "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1",
+        "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+    }
+    try:
+        yield env
+    finally:
+        subprocess.run(["pkill", "-f", f"flower-superlink.*--port {port}"], check=False)
+
+
+def flwr_run(env: dict[str, str], run_config: str, num_supernodes: int, timeout: float = 3600) -> str:
+    """`flwr run <project>` with ``num_supernodes`` CPU clients; returns everything it printed."""
+    flwr = str(Path(sys.executable).with_name("flwr"))
+    federation = f"num-supernodes={num_supernodes} client-resources-num-cpus=1 client-resources-num-gpus=0.0"
+    done = subprocess.run(
+        [flwr, "run", str(PROJECT_ROOT), CONNECTION, "--stream", "--federation-config", federation, "--run-config", run_config],
+        env=env, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=timeout, check=False,
+    )
+    return done.stdout + done.stderr
