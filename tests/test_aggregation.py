@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from flwr.app import ArrayRecord, ConfigRecord, Error, Message, MessageType, MetricRecord, RecordDict
-
 from flwr.supercore.task_identity import TaskIdentity
 
 from zk0.aggregation import ValidatingFedProx, array_signature, update_problem
@@ -15,7 +14,6 @@ from zk0.aggregation import ValidatingFedProx, array_signature, update_problem
 def server_identity():
     """Flower's runtime sets who is sending; here the test plays the ServerApp of run 1."""
     TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 1, 1, 0
-
 
 
 def arrays(a: float, b: float = 0.0, a_shape=(2, 3)) -> ArrayRecord:

@@ -25,13 +25,22 @@ def flower_env(tmp_path_factory):
 
 def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     out = tmp_path / "outputs"
-    log = flwr_run(flower_env, f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'", 2)
+    log = flwr_run(
+        flower_env, f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'", 2
+    )
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]
     run = runs[0]
     server = run / "server"
-    for name in ["server.log", "metrics_history.json", "policy_loss.png", "action_mse.png",
-                 "round_0.json", "round_1.json", "round_2.json"]:
+    for name in [
+        "server.log",
+        "metrics_history.json",
+        "policy_loss.png",
+        "action_mse.png",
+        "round_0.json",
+        "round_1.json",
+        "round_2.json",
+    ]:
         assert (server / name).stat().st_size > 0, name
     history = json.loads((server / "metrics_history.json").read_text())
     assert history["clients"] == {"0": "synth-so100-pickplace", "1": "synth-so100-stacking"}
@@ -41,7 +50,9 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     for index, client in last["clients"].items():
         assert client["dataset"] == history["clients"][index]
         assert client["train"]["num-examples"] == 3 * 4
-        assert {"train-loss", "proximal-loss", "grad-norm", "step-time", "peak-gpu-gib", "host-rss-gib"} <= set(client["train"])
+        assert {"train-loss", "proximal-loss", "grad-norm", "step-time", "peak-gpu-gib", "host-rss-gib"} <= set(
+            client["train"]
+        )
         assert {"policy-loss", "action-mse"} <= set(client["evaluate"])
         client_dir = run / "clients" / f"client_{index}"
         assert "Round 2 train" in (client_dir / "client.log").read_text()
@@ -61,7 +72,9 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     preprocessor = PolicyProcessorPipeline.from_pretrained(
         checkpoint, "policy_preprocessor.json", to_transition=batch_to_transition, to_output=transition_to_batch
     )
-    dataset = LeRobotDataset("zk0/synth_so100_stacking", root=Path(os.environ["ZK0_CACHE"]) / "datasets/zk0/synth_so100_stacking")
+    dataset = LeRobotDataset(
+        "zk0/synth_so100_stacking", root=Path(os.environ["ZK0_CACHE"]) / "datasets/zk0/synth_so100_stacking"
+    )
     frame = dataset[0]
     observation = {
         "observation.images.camera1": frame["observation.images.laptop"],

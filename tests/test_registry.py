@@ -14,7 +14,10 @@ from zk0.registry import RegistryError, load_registry
 
 def test_project_registry_lists_four_clients_and_a_server_dataset(registry):
     assert [e.name for e in registry.clients] == [
-        "synth-so100-pickplace", "synth-so100-stacking", "synth-so101-sorting", "synth-so101-reach"
+        "synth-so100-pickplace",
+        "synth-so100-stacking",
+        "synth-so101-sorting",
+        "synth-so101-reach",
     ]
     assert registry.get("synth-so100-eval").role == "server"
     assert registry.get("zk0/synth_so100_stacking").name == "synth-so100-stacking"

@@ -20,4 +20,7 @@ def test_stats_round_trip_and_merge(registry):
     merged = aggregate_stats([{k: v for k, v in s.items() if k in ("observation.state", "action")} for s in decoded])
     counts = [s["action"]["count"] for s in decoded]
     assert merged["action"]["count"] == sum(counts)
-    assert merged["action"]["min"].tolist() == np.minimum(decoded[0]["action"]["min"], decoded[1]["action"]["min"]).tolist()
+    assert (
+        merged["action"]["min"].tolist()
+        == np.minimum(decoded[0]["action"]["min"], decoded[1]["action"]["min"]).tolist()
+    )

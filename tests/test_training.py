@@ -57,7 +57,9 @@ def test_fedprox_adds_its_gradient_to_the_policy_loss_gradient(client_parts):
 def test_schedule_follows_the_global_step_not_the_round():
     def scheduler():
         opt = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=1e-4)
-        cfg = CosineDecayWithWarmupSchedulerConfig(peak_lr=1e-4, decay_lr=1e-6, num_warmup_steps=10, num_decay_steps=100)
+        cfg = CosineDecayWithWarmupSchedulerConfig(
+            peak_lr=1e-4, decay_lr=1e-6, num_warmup_steps=10, num_decay_steps=100
+        )
         return cfg.build(opt, 100)
 
     stepped, jumped = scheduler(), scheduler()

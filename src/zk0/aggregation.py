@@ -67,7 +67,9 @@ class ValidatingFedProx(FedProx):
                 continue
             problem = update_problem(msg.content[self.arrayrecord_key], self.expected)
             if problem:
-                logger.warning("Round {}: rejected the update of node {}: {}", server_round, msg.metadata.src_node_id, problem)
+                logger.warning(
+                    "Round {}: rejected the update of node {}: {}", server_round, msg.metadata.src_node_id, problem
+                )
                 continue
             valid.append(msg)
         return valid
@@ -79,7 +81,9 @@ class ValidatingFedProx(FedProx):
         if len(valid) < self.min_train_nodes:
             logger.warning(
                 "Round {}: {} valid updates, fewer than min-train-clients={}; the global model is kept.",
-                server_round, len(valid), self.min_train_nodes,
+                server_round,
+                len(valid),
+                self.min_train_nodes,
             )
             self.recorder("train", server_round, valid, None)
             return None, None

@@ -97,9 +97,17 @@ class History:
         fig, ax = plt.subplots(figsize=(7, 4.5))
         rounds = sorted(self.rounds)
         for index, name in self.participants().items():
-            points = [(r, self.rounds[r]["clients"].get(str(index), {}).get("evaluate", {}).get(metric)) for r in rounds]
+            points = [
+                (r, self.rounds[r]["clients"].get(str(index), {}).get("evaluate", {}).get(metric)) for r in rounds
+            ]
             _line(ax, points, f"client {index} ({name})", "-", 1.0)
-        _line(ax, [(r, self.rounds[r].get("aggregate-evaluate", {}).get(metric)) for r in rounds], "clients (weighted)", "--", 2.0)
+        _line(
+            ax,
+            [(r, self.rounds[r].get("aggregate-evaluate", {}).get(metric)) for r in rounds],
+            "clients (weighted)",
+            "--",
+            2.0,
+        )
         _line(ax, [(r, self.rounds[r].get("server-evaluate", {}).get(metric)) for r in rounds], "server eval", "-", 2.5)
         ax.set(xlabel="round", ylabel=metric, title=f"{metric} per round")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))

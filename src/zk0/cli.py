@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
-
 import tomllib
+from pathlib import Path
 
 from flwr.common.config import flatten_dict, parse_config_args
 
@@ -43,7 +42,9 @@ def _check(args: argparse.Namespace) -> int:
     run = from_run_config({**flatten_dict(table), **overrides})
     registry = load_registry(run.registry)
     registry.get(run.server_eval_dataset)
-    print(f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, {len(registry.clients)} client datasets.")
+    print(
+        f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, {len(registry.clients)} client datasets."
+    )
     return 0
 
 
@@ -54,10 +55,14 @@ def build_parser() -> argparse.ArgumentParser:
     assets.add_argument("--cache-dir", help="cache root (default: $ZK0_CACHE or ~/.cache/zk0)")
     assets.add_argument("--seed", type=int, default=0, help="generator seed (default 0, what runs use)")
     assets.add_argument("--episodes", type=int, help="episodes per dataset (default: each dataset's own)")
-    assets.add_argument("--only", nargs="+", metavar="NAME", help=f"only these assets: {TINY_BACKBONE} {' '.join(SPECS)}")
+    assets.add_argument(
+        "--only", nargs="+", metavar="NAME", help=f"only these assets: {TINY_BACKBONE} {' '.join(SPECS)}"
+    )
     assets.set_defaults(func=_assets)
     check = commands.add_parser("check", help="validate run-config overrides and the dataset registry")
-    check.add_argument("--run-config", action="append", default=[], help='overrides as for flwr run, e.g. "local-steps=5"')
+    check.add_argument(
+        "--run-config", action="append", default=[], help='overrides as for flwr run, e.g. "local-steps=5"'
+    )
     check.set_defaults(func=_check)
     return parser
 

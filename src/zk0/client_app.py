@@ -76,7 +76,14 @@ def session_for(context: Context) -> ClientSession:
     split = open_split(entry, meta, bundle.policy.config, run)
     trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
     session = ClientSession(
-        run, index, bundle, split, trainer, eval_loader(split.evaluation, run), backbone_fingerprint(bundle), f"client {index}"
+        run,
+        index,
+        bundle,
+        split,
+        trainer,
+        eval_loader(split.evaluation, run),
+        backbone_fingerprint(bundle),
+        f"client {index}",
     )
     _SESSIONS[key] = session
     return session
@@ -86,7 +93,9 @@ def _begin_round(session: ClientSession, msg: Message) -> None:
     """Open the client's log in the run folder named by the server and load the global weights."""
     config = msg.content["config"]
     if session.log_sink is None:
-        session.log_sink = add_file_sink(client_dir(Path(str(config["run-dir"])), session.index) / "client.log", session.party)
+        session.log_sink = add_file_sink(
+            client_dir(Path(str(config["run-dir"])), session.index) / "client.log", session.party
+        )
     if config["backbone-fingerprint"] != session.fingerprint:
         raise PolicyError(
             f"Client {session.index} ({session.split.entry.name}) has backbone fingerprint {session.fingerprint}, "
@@ -125,6 +134,8 @@ def evaluate_(msg: Message, context: Context) -> Message:
         _begin_round(session, msg)
         run = session.run
         metrics = evaluate(session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed)
-        logger.info("Round {} evaluate on {}: {}", msg.content["config"]["server-round"], session.split.entry.name, metrics)
+        logger.info(
+            "Round {} evaluate on {}: {}", msg.content["config"]["server-round"], session.split.entry.name, metrics
+        )
         content = RecordDict({"metrics": MetricRecord({**metrics, "dataset-index": session.index})})
     return Message(content=content, reply_to=msg)

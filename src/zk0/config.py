@@ -128,6 +128,8 @@ def _check_range(name: str, value: Any) -> None:
 
 def _check_choices(cfg: RunConfig) -> None:
     if cfg.device.split(":")[0] not in DEVICES:
-        raise ConfigError(f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} (cuda:N allowed).")
+        raise ConfigError(
+            f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} (cuda:N allowed)."
+        )
     if not cfg.model:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")

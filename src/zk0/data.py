@@ -20,8 +20,8 @@ from lerobot.datasets.factory import make_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from torch.utils.data import DataLoader
 
-from zk0.errors import Zk0Error
 from zk0.config import RunConfig
+from zk0.errors import Zk0Error
 from zk0.registry import DatasetEntry
 
 
@@ -69,7 +69,9 @@ def _make(entry: DatasetEntry, policy_cfg: PreTrainedConfig, episodes: list[int]
     return make_dataset(cfg)
 
 
-def open_split(entry: DatasetEntry, meta: LeRobotDatasetMetadata, policy_cfg: PreTrainedConfig, run: RunConfig) -> DatasetSplit:
+def open_split(
+    entry: DatasetEntry, meta: LeRobotDatasetMetadata, policy_cfg: PreTrainedConfig, run: RunConfig
+) -> DatasetSplit:
     """A client's dataset: training episodes and the held-out ones."""
     train_eps, eval_eps = split_episodes(meta.total_episodes, run.eval_episodes, entry.name)
     return DatasetSplit(entry, meta, _make(entry, policy_cfg, train_eps), _make(entry, policy_cfg, eval_eps))

@@ -53,6 +53,10 @@ def add_file_sink(log_file: Path, party: str, level: str = "INFO") -> int:
     """
     log_file.parent.mkdir(parents=True, exist_ok=True)
     return logger.add(
-        log_file, level=level, format=FORMAT, backtrace=False, diagnose=False,
+        log_file,
+        level=level,
+        format=FORMAT,
+        backtrace=False,
+        diagnose=False,
         filter=lambda r: r["extra"].get("party") == party,
     )

@@ -21,9 +21,9 @@ from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcess
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from transformers import AutoConfig
 
-from zk0.errors import Zk0Error
 from zk0.assets import ensure_backbone
 from zk0.config import RunConfig
+from zk0.errors import Zk0Error
 from zk0.registry import DatasetEntry
 
 TINY_MODEL = "tiny"
@@ -156,7 +156,9 @@ def set_trainable(bundle: PolicyBundle, arrays: ArrayRecord) -> None:
     if set(incoming) != set(bundle.trainable_names):
         missing = sorted(set(bundle.trainable_names) - set(incoming))[:3]
         extra = sorted(set(incoming) - set(bundle.trainable_names))[:3]
-        raise PolicyError(f"Global arrays do not match this policy's trainable parameters (missing {missing}, extra {extra}).")
+        raise PolicyError(
+            f"Global arrays do not match this policy's trainable parameters (missing {missing}, extra {extra})."
+        )
     params = dict(bundle.policy.named_parameters())
     with torch.no_grad():
         for name, tensor in incoming.items():

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import draccus
 
-from zk0.errors import Zk0Error
 from zk0.assets import ensure_dataset
 from zk0.assets.datasets import SPECS
+from zk0.errors import Zk0Error
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 ROLES = ("client", "server")
@@ -70,7 +70,9 @@ class Registry:
         for entry in self.entries:
             if key in (entry.name, entry.repo_id):
                 return entry
-        raise RegistryError(f"Dataset {key!r} is not in the registry; expected one of {[e.name for e in self.entries]}.")
+        raise RegistryError(
+            f"Dataset {key!r} is not in the registry; expected one of {[e.name for e in self.entries]}."
+        )
 
     def for_partition(self, partition_id: int) -> DatasetEntry:
         """The client entry for simulation partition ``partition_id``."""
@@ -107,5 +109,7 @@ def _decode(name: str, raw: dict) -> DatasetEntry:
     if entry.synthetic and name not in SPECS:
         raise RegistryError(f"Registry entry {name!r} is marked synthetic but zk0 generates only {sorted(SPECS)}.")
     if not entry.cameras:
-        raise RegistryError(f"Registry entry {name!r} maps no cameras; add cameras = {{ <dataset camera> = \"camera1\" }}.")
+        raise RegistryError(
+            f'Registry entry {name!r} maps no cameras; add cameras = {{ <dataset camera> = "camera1" }}.'
+        )
     return entry

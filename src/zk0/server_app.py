@@ -20,8 +20,8 @@ from loguru import logger
 from zk0.aggregation import ValidatingFedProx, array_signature
 from zk0.artifacts import History, new_run_dir, save_checkpoint
 from zk0.config import RunConfig, from_run_config
-from zk0.errors import Zk0Error
 from zk0.data import DatasetSplit, eval_loader, open_evaluation, open_metadata
+from zk0.errors import Zk0Error
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
 from zk0.registry import load_registry
@@ -41,7 +41,9 @@ class RoundEnd:
         self.client_stats: dict[int, dict] = {}
         self.started = time.perf_counter()
 
-    def record_clients(self, phase: str, server_round: int, replies: list[Message], aggregate: MetricRecord | None) -> None:
+    def record_clients(
+        self, phase: str, server_round: int, replies: list[Message], aggregate: MetricRecord | None
+    ) -> None:
         """Keep each client's metrics (by dataset index, never node id), their aggregate and dataset statistics."""
         if aggregate:
             summary = {k: v for k, v in aggregate.items() if k != "dataset-index"}
@@ -63,7 +65,9 @@ class RoundEnd:
             self.history.add(server_round, "server-evaluate", metrics)
         self.history.add(server_round, "elapsed-s", {"wall": time.perf_counter() - self.started})
         self.history.write_round(server_round)
-        if server_round and (server_round % self.run.checkpoint_interval == 0 or server_round == self.run.num_server_rounds):
+        if server_round and (
+            server_round % self.run.checkpoint_interval == 0 or server_round == self.run.num_server_rounds
+        ):
             path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round)
             logger.info("Round {} checkpoint: {}", server_round, path)
         self.tracker.log(server_round, self.history.round(server_round))

@@ -55,7 +55,22 @@ def flwr_run(env: dict[str, str], run_config: str, num_supernodes: int, timeout:
     flwr = str(Path(sys.executable).with_name("flwr"))
     federation = f"num-supernodes={num_supernodes} client-resources-num-cpus=1 client-resources-num-gpus=0.0"
     done = subprocess.run(
-        [flwr, "run", str(PROJECT_ROOT), CONNECTION, "--stream", "--federation-config", federation, "--run-config", run_config],
-        env=env, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=timeout, check=False,
+        [
+            flwr,
+            "run",
+            str(PROJECT_ROOT),
+            CONNECTION,
+            "--stream",
+            "--federation-config",
+            federation,
+            "--run-config",
+            run_config,
+        ],
+        env=env,
+        cwd=PROJECT_ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        check=False,
     )
     return done.stdout + done.stderr

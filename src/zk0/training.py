@@ -125,9 +125,16 @@ class LocalTrainer:
         self.fedprox.anchor_at(mu)
         set_schedule_step(self.scheduler, global_step)
         tracker = MetricsTracker(
-            self.run.batch_size, self.split.meta.total_frames, self.split.meta.total_episodes,
-            {"loss": AverageMeter("loss"), "grad_norm": AverageMeter("grdn"), "lr": AverageMeter("lr"),
-             "update_s": AverageMeter("updt_s"), "dataloading_s": AverageMeter("data_s")},
+            self.run.batch_size,
+            self.split.meta.total_frames,
+            self.split.meta.total_episodes,
+            {
+                "loss": AverageMeter("loss"),
+                "grad_norm": AverageMeter("grdn"),
+                "lr": AverageMeter("lr"),
+                "update_s": AverageMeter("updt_s"),
+                "dataloading_s": AverageMeter("data_s"),
+            },
         )
         cameras, task = self.split.meta.camera_keys, self.split.entry.task
         done = skipped = samples = 0
@@ -146,8 +153,13 @@ class LocalTrainer:
             batch = self.bundle.preprocessor(prepare_batch(batch, cameras, task))
             tracker.dataloading_s = time.perf_counter() - t0
             tracker, _ = update_policy(
-                tracker, self.bundle.policy, batch, self.optimizer, self.grad_clip_norm,
-                accelerator=self.accelerator, lr_scheduler=self.scheduler,
+                tracker,
+                self.bundle.policy,
+                batch,
+                self.optimizer,
+                self.grad_clip_norm,
+                accelerator=self.accelerator,
+                lr_scheduler=self.scheduler,
             )
             samples += len(batch["action"])
             done += 1
@@ -179,7 +191,9 @@ def peak_memory(device: torch.device) -> dict[str, float]:
 
 
 @torch.no_grad()
-def evaluate(bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int) -> dict[str, float]:
+def evaluate(
+    bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int
+) -> dict[str, float]:
     """Seeded flow-matching policy loss and action-chunk MSE (unnormalised units) on held-out frames."""
     policy = bundle.policy
     policy.eval()

@@ -18,9 +18,9 @@ from pathlib import Path
 
 from filelock import FileLock
 
-from zk0.errors import Zk0Error
 from zk0.assets.backbone import build_tiny_backbone
 from zk0.assets.datasets import SPECS, write_synthetic_dataset
+from zk0.errors import Zk0Error
 
 GENERATOR_VERSION = 1
 MANIFEST = "zk0_manifest.json"
@@ -45,7 +45,9 @@ def _writable_root(root: Path) -> Path:
         with tempfile.NamedTemporaryFile(dir=root):
             pass
     except OSError as err:
-        raise AssetError(f"Cache dir {str(root)!r} is not writable ({err.strerror}); pick another with --cache-dir or ZK0_CACHE.") from None
+        raise AssetError(
+            f"Cache dir {str(root)!r} is not writable ({err.strerror}); pick another with --cache-dir or ZK0_CACHE."
+        ) from None
     return root
 
 

@@ -79,8 +79,12 @@ def main(argv: list[str] | None = None) -> int:
             continue
         ratio = server["action-mse"] / baseline
         rows.append({"round": record["round"], **server, "baseline-mse": baseline, "ratio": ratio})
-        print(f"{record['round']:>5} {server['action-mse']:>18.2f} {baseline:>16.2f} {ratio:>6.3f} {server['policy-loss']:>19.4f}")
-    print(f"wall time: {wall:.1f} s for {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients; run: {runs[-1].parent.parent}")
+        print(
+            f"{record['round']:>5} {server['action-mse']:>18.2f} {baseline:>16.2f} {ratio:>6.3f} {server['policy-loss']:>19.4f}"
+        )
+    print(
+        f"wall time: {wall:.1f} s for {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients; run: {runs[-1].parent.parent}"
+    )
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "wall-s": wall, "config": run_config}, indent=2))
     return 0
