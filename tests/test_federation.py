@@ -13,7 +13,15 @@ from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from lerobot.processor import PolicyProcessorPipeline
 from lerobot.processor.converters import batch_to_transition, transition_to_batch
 
-from zk0.simulation import flwr_run, local_federation
+from zk0.config import RunConfig
+from zk0.data import open_metadata
+from zk0.policy import build_policy, get_trainable
+from zk0.registry import load_registry
+from zk0.simulation import cpu_federation, flwr_run, local_federation
+
+# Two clients served by one Ray actor: which actor runs a node's message is up to Ray, so one
+# actor makes "each client builds its policy once per run" exact.
+ONE_ACTOR = cpu_federation(num_supernodes=2, actors=1)
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +34,9 @@ def flower_env(tmp_path_factory):
 def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     out = tmp_path / "outputs"
     log = flwr_run(
-        flower_env, f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'", 2
+        flower_env,
+        f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'",
+        ONE_ACTOR,
     )
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]
@@ -55,7 +65,9 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
         )
         assert {"policy-loss", "action-mse"} <= set(client["evaluate"])
         client_dir = run / "clients" / f"client_{index}"
-        assert "Round 2 train" in (client_dir / "client.log").read_text()
+        client_log = (client_dir / "client.log").read_text()
+        assert "Round 2 train" in client_log and "Round 2 evaluate" in client_log
+        assert client_log.count("built SmolVLA") == 1, "policy and dataset are kept across rounds"
         assert json.loads((client_dir / "round_2.json").read_text())["train"]["num-examples"] == 12
     assert {"policy-loss", "action-mse"} <= set(last["server-evaluate"])
     assert {"policy-loss", "action-mse"} <= set(last["aggregate-evaluate"])
@@ -86,9 +98,18 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     assert chunk.shape == (1, policy.config.chunk_size, 6)
     assert torch.isfinite(chunk).all()
 
+    # The same checkpoint is a valid starting point for a new federation (`model=<dir>`).
+    registry = load_registry()
+    entry = registry.clients[1]
+    resumed = build_policy(RunConfig(model=str(checkpoint)), open_metadata(entry), entry, registry.model_cameras())
+    start = get_trainable(resumed)
+    for name, value in policy.state_dict().items():
+        if name in start:
+            assert (start[name].numpy() == value.numpy()).all(), name
+
 
 def test_bad_run_config_fails_before_training_in_one_sentence(flower_env, tmp_path):
     out = tmp_path / "outputs"
-    log = flwr_run(flower_env, f"local-steps=0 output-dir='{out}'", 2)
+    log = flwr_run(flower_env, f"local-steps=0 output-dir='{out}'", ONE_ACTOR)
     assert "zk0: Run-config key 'local-steps' got 0; expected a value >= 1." in log
     assert not out.exists(), "nothing is written for a run that never starts"

@@ -72,9 +72,10 @@ class History:
         clients = self.round(server_round)["clients"]
         clients.setdefault(str(index), {"dataset": self.client_names.get(index, "?")})[phase] = metrics
 
-    def add(self, server_round: int, key: str, metrics: dict | None) -> None:
-        if metrics:
-            self.round(server_round)[key] = metrics
+    def add(self, server_round: int, key: str, value: dict | float | None) -> None:
+        """Set ``key`` of the round's record (nothing for None or an empty dict)."""
+        if value or value == 0:
+            self.round(server_round)[key] = value
 
     def write_round(self, server_round: int) -> None:
         """``round_<N>.json`` for the server and each client, the history, and both charts."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from flwr.app import Context, Message, MetricRecord, RecordDict
+from flwr.app import ConfigRecord, Context, Message, MetricRecord, RecordDict
 from flwr.clientapp import ClientApp
 from loguru import logger
 from torch.utils.data import DataLoader
@@ -41,7 +41,6 @@ class ClientSession:
     eval_batches: DataLoader
     fingerprint: str
     party: str
-    log_sink: int | None = None
 
 
 _SESSIONS: dict[tuple[int, int], ClientSession] = {}
@@ -59,7 +58,7 @@ def dataset_index(registry: Registry, context: Context) -> int:
     return partition
 
 
-def session_for(context: Context) -> ClientSession:
+def session_for(context: Context, config: ConfigRecord) -> ClientSession:
     """This run's session for this node, built on first use; sessions of older runs are dropped."""
     key = (context.run_id, context.node_id)
     if key in _SESSIONS:
@@ -70,32 +69,31 @@ def session_for(context: Context) -> ClientSession:
     run = from_run_config(dict(context.run_config))
     registry = load_registry(run.registry)
     index = dataset_index(registry, context)
-    entry = registry.clients[index]
-    meta = open_metadata(entry)
-    bundle = build_policy(run, meta, entry, registry.model_cameras())
-    split = open_split(entry, meta, bundle.policy.config, run)
-    trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
-    session = ClientSession(
-        run,
-        index,
-        bundle,
-        split,
-        trainer,
-        eval_loader(split.evaluation, run),
-        backbone_fingerprint(bundle),
-        f"client {index}",
-    )
+    party = f"client {index}"
+    add_file_sink(client_dir(Path(str(config["run-dir"])), index) / "client.log", party)
+    with logger.contextualize(party=party):
+        entry = registry.clients[index]
+        meta = open_metadata(entry)
+        bundle = build_policy(run, meta, entry, registry.model_cameras())
+        split = open_split(entry, meta, bundle.policy.config, run)
+        trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+        fingerprint = backbone_fingerprint(bundle)
+        logger.info(
+            "Opened {} ({} training, {} held-out episodes) and built SmolVLA ({} trainable tensors) on {}",
+            entry.name,
+            len(split.train.episodes),
+            len(split.evaluation.episodes),
+            len(bundle.trainable_names),
+            bundle.device,
+        )
+    session = ClientSession(run, index, bundle, split, trainer, eval_loader(split.evaluation, run), fingerprint, party)
     _SESSIONS[key] = session
     return session
 
 
-def _begin_round(session: ClientSession, msg: Message) -> None:
-    """Open the client's log in the run folder named by the server and load the global weights."""
+def _load_global(session: ClientSession, msg: Message) -> None:
+    """Check the server's backbone fingerprint and load the global trainable weights."""
     config = msg.content["config"]
-    if session.log_sink is None:
-        session.log_sink = add_file_sink(
-            client_dir(Path(str(config["run-dir"])), session.index) / "client.log", session.party
-        )
     if config["backbone-fingerprint"] != session.fingerprint:
         raise PolicyError(
             f"Client {session.index} ({session.split.entry.name}) has backbone fingerprint {session.fingerprint}, "
@@ -107,9 +105,9 @@ def _begin_round(session: ClientSession, msg: Message) -> None:
 @app.train()
 def train(msg: Message, context: Context) -> Message:
     """Load the global trainable weights, take ``local-steps`` FedProx steps, send the new weights back."""
-    session = session_for(context)
+    session = session_for(context, msg.content["config"])
     with logger.contextualize(party=session.party):
-        _begin_round(session, msg)
+        _load_global(session, msg)
         server_round = int(msg.content["config"]["server-round"])
         run = session.run
         metrics = session.trainer.fit(
@@ -129,9 +127,9 @@ def train(msg: Message, context: Context) -> Message:
 @app.evaluate()
 def evaluate_(msg: Message, context: Context) -> Message:
     """Policy loss and action MSE of the global model on this client's held-out episodes."""
-    session = session_for(context)
+    session = session_for(context, msg.content["config"])
     with logger.contextualize(party=session.party):
-        _begin_round(session, msg)
+        _load_global(session, msg)
         run = session.run
         metrics = evaluate(session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed)
         logger.info(

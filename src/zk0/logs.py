@@ -32,11 +32,22 @@ class InterceptHandler(logging.Handler):
         logger.opt(depth=depth, exception=record.exc_info).log(level, record.getMessage())
 
 
+_console_sink: int | None = None
+
+
 def setup_logging(party: str, level: str = "INFO") -> None:
-    """A console (stderr) sink; all third-party logging routed through loguru."""
-    logger.remove()
+    """One console (stderr) sink per process; all third-party logging routed through loguru.
+
+    Safe to call again (several simulated clients share a process): file sinks added since
+    stay, only the console sink is replaced.
+    """
+    global _console_sink
+    if _console_sink is None:
+        logger.remove()  # loguru's default stderr handler
+    else:
+        logger.remove(_console_sink)
     logger.configure(extra={"party": party})
-    logger.add(sys.stderr, level=level, format=FORMAT, backtrace=False, diagnose=False)
+    _console_sink = logger.add(sys.stderr, level=level, format=FORMAT, backtrace=False, diagnose=False)
     logging.basicConfig(handlers=[InterceptHandler()], level=0, force=True)
     for name in ("flwr", "lerobot", "ray", "accelerate"):
         third_party = logging.getLogger(name)
@@ -58,5 +69,6 @@ def add_file_sink(log_file: Path, party: str, level: str = "INFO") -> int:
         format=FORMAT,
         backtrace=False,
         diagnose=False,
+        buffering=1,  # line by line: simulation actors are killed at the end of a run
         filter=lambda r: r["extra"].get("party") == party,
     )

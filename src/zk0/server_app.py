@@ -63,7 +63,7 @@ class RoundEnd:
             metrics = evaluate(self.bundle, self.split, self.loader, self.run.eval_batches, self.run.seed)
             logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
             self.history.add(server_round, "server-evaluate", metrics)
-        self.history.add(server_round, "elapsed-s", {"wall": time.perf_counter() - self.started})
+        self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
         if server_round and (
             server_round % self.run.checkpoint_interval == 0 or server_round == self.run.num_server_rounds

@@ -50,10 +50,15 @@ def local_federation(home: Path) -> Iterator[dict[str, str]]:
         subprocess.run(["pkill", "-f", f"flower-superlink.*--port {port}"], check=False)
 
 
-def flwr_run(env: dict[str, str], run_config: str, num_supernodes: int, timeout: float = 3600) -> str:
-    """`flwr run <project>` with ``num_supernodes`` CPU clients; returns everything it printed."""
+def cpu_federation(num_supernodes: int, actors: int | None = None) -> str:
+    """A federation config: ``num_supernodes`` CPU clients, run by ``actors`` Ray workers (default: one per core)."""
+    config = f"num-supernodes={num_supernodes} client-resources-num-cpus=1 client-resources-num-gpus=0.0"
+    return config + (f" init-args-num-cpus={actors}" if actors else "")
+
+
+def flwr_run(env: dict[str, str], run_config: str, federation: str, timeout: float = 3600) -> str:
+    """`flwr run <project> --stream` with a run config and a federation config; returns what it printed."""
     flwr = str(Path(sys.executable).with_name("flwr"))
-    federation = f"num-supernodes={num_supernodes} client-resources-num-cpus=1 client-resources-num-gpus=0.0"
     done = subprocess.run(
         [
             flwr,

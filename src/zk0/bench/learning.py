@@ -21,7 +21,7 @@ import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from zk0.registry import load_registry
-from zk0.simulation import flwr_run, local_federation
+from zk0.simulation import cpu_federation, flwr_run, local_federation
 
 
 def actions(entry, episodes: list[int] | None = None) -> np.ndarray:
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env:
-        log = flwr_run(env, run_config, args.clients)
+        log = flwr_run(env, run_config, cpu_federation(args.clients))
     wall = time.perf_counter() - started
     runs = sorted(out.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
     if not runs or "Exit Code: " in log:
