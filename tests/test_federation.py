@@ -28,6 +28,7 @@ ONE_ACTOR = cpu_federation(num_supernodes=2, actors=1)
 def flower_env(tmp_path_factory):
     """A private Flower home and SuperLink for this module's runs (stopped afterwards)."""
     with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
+        env.pop("HF_TOKEN", None)  # the Hub push stays offline: staged, not uploaded
         yield env
 
 
@@ -35,7 +36,8 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     out = tmp_path / "outputs"
     log = flwr_run(
         flower_env,
-        f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 output-dir='{out}'",
+        f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 "
+        f"hf-repo-id='zk0-tests/federated-smolvla' output-dir='{out}'",
         ONE_ACTOR,
     )
     runs = list(out.iterdir()) if out.exists() else []
@@ -97,6 +99,22 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     chunk = policy.predict_action_chunk(preprocessor(observation))
     assert chunk.shape == (1, policy.config.chunk_size, 6)
     assert torch.isfinite(chunk).all()
+
+    # Each client's own statistics travel with the checkpoint; the processors carry the merged ones.
+    assert sorted(p.name for p in (checkpoint / "client_stats").iterdir()) == [
+        "client_0_synth-so100-pickplace.json",
+        "client_1_synth-so100-stacking.json",
+    ]
+
+    # Without HF_TOKEN the Hub folder is staged (a loadable lerobot model dir with its card), not pushed.
+    assert log.count("hf-repo-id is set but HF_TOKEN is not") == 1
+    staged = run / "hub" / "round_2"
+    assert SmolVLAPolicy.from_pretrained(staged).config.chunk_size == policy.config.chunk_size
+    card = (staged / "README.md").read_text()
+    for repo_id in ["zk0/synth_so100_pickplace", "zk0/synth_so100_stacking", "zk0/synth_so100_eval"]:
+        assert repo_id in card
+    assert "--policy.path=zk0-tests/federated-smolvla" in card
+    assert (staged / "policy_loss.png").is_file()
 
     # The same checkpoint is a valid starting point for a new federation (`model=<dir>`).
     registry = load_registry()

@@ -32,11 +32,28 @@ def test_differently_named_cameras_map_to_identical_model_inputs(registry):
     assert keys == {("observation.images.camera1", "observation.images.camera2", "observation.state", "action")}
 
 
-def test_unmapped_camera_is_refused_with_the_dataset_name(registry):
-    entry = registry.clients[1]
-    entry = dataclasses.replace(entry, cameras={"laptop": "camera1"})
-    with pytest.raises(PolicyError, match="'synth-so100-stacking' maps its cameras"):
+def test_dataset_without_a_mapped_camera_is_refused_with_its_name(registry):
+    entry = dataclasses.replace(registry.clients[1], cameras={"laptop": "camera9"})
+    with pytest.raises(PolicyError) as err:
         model_features(open_metadata(entry), entry, registry.model_cameras())
+    assert "'synth-so100-stacking' has no camera mapped" in str(err.value)
+    assert "observation.images.laptop" in str(err.value)
+
+
+def test_fewer_cameras_use_smolvla_empty_camera_slots(registry):
+    from zk0.data import open_split, train_loader
+    from zk0.policy import build_policy
+    from zk0.training import LocalTrainer
+
+    entry = dataclasses.replace(registry.clients[1], cameras={"phone": "camera2"})
+    meta = open_metadata(entry)
+    assert list(model_features(meta, entry, registry.model_cameras()))[:2] == registry.model_cameras()
+    run = RunConfig(batch_size=2)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    assert bundle.policy.config.empty_cameras == 1
+    split = open_split(entry, meta, bundle.policy.config, run)
+    trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+    assert trainer.fit(steps=1, mu=0.0, global_step=0)["num-examples"] == 2
 
 
 @pytest.mark.parametrize(

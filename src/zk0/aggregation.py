@@ -51,12 +51,19 @@ class ValidatingFedProx(FedProx):
         expected: dict[str, tuple[tuple[int, ...], str]],
         evaluates_in: Callable[[int], bool],
         recorder: ClientRecorder,
+        round_offset: int = 0,
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
         self.expected = expected
         self.evaluates_in = evaluates_in
         self.recorder = recorder
+        self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
+
+    def configure_train(
+        self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
+    ) -> Iterable[Message]:
+        return super().configure_train(server_round + self.round_offset, arrays, config, grid)
 
     def valid_updates(self, server_round: int, replies: Iterable[Message]) -> list[Message]:
         """Replies that may be averaged; every other one is logged with its reason."""
@@ -77,6 +84,7 @@ class ValidatingFedProx(FedProx):
     def aggregate_train(
         self, server_round: int, replies: Iterable[Message]
     ) -> tuple[ArrayRecord | None, MetricRecord | None]:
+        server_round += self.round_offset
         valid = self.valid_updates(server_round, list(replies))
         if len(valid) < self.min_train_nodes:
             logger.warning(
@@ -94,11 +102,13 @@ class ValidatingFedProx(FedProx):
     def configure_evaluate(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
+        server_round += self.round_offset
         if not self.evaluates_in(server_round):
             return []
         return super().configure_evaluate(server_round, arrays, config, grid)
 
     def aggregate_evaluate(self, server_round: int, replies: Iterable[Message]) -> MetricRecord | None:
+        server_round += self.round_offset
         replies = list(replies)
         if not replies:
             return None

@@ -20,13 +20,11 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
-import matplotlib
+from lerobot.datasets.utils import serialize_dict
+from matplotlib.figure import Figure  # the object API: no pyplot state, no GUI backend
+from matplotlib.ticker import MaxNLocator
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.ticker import MaxNLocator  # noqa: E402
-
-from zk0.policy import PolicyBundle  # noqa: E402
+from zk0.policy import PolicyBundle
 
 CHARTS = {"policy-loss": "policy_loss.png", "action-mse": "action_mse.png"}
 
@@ -95,7 +93,8 @@ class History:
 
     def chart(self, metric: str, path: Path) -> None:
         """One line per client, the clients' weighted aggregate, and the server's own evaluation."""
-        fig, ax = plt.subplots(figsize=(7, 4.5))
+        fig = Figure(figsize=(7, 4.5))
+        ax = fig.subplots()
         rounds = sorted(self.rounds)
         for index, name in self.participants().items():
             points = [
@@ -118,7 +117,6 @@ class History:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.png")
         fig.savefig(tmp, dpi=100)
-        plt.close(fig)
         os.replace(tmp, path)
 
 
@@ -128,8 +126,12 @@ def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, wi
         ax.plot(*zip(*points, strict=True), style, marker="o", linewidth=width, label=label)
 
 
-def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int) -> Path:
-    """A lerobot pretrained-model directory, written to a temporary name and renamed into place."""
+def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int, client_stats: dict[str, dict]) -> Path:
+    """A lerobot pretrained-model directory, written to a temporary name and renamed into place.
+
+    Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
+    client's own statistics, so a robot owner can run the policy normalised for their robot.
+    """
     models = run_dir / "models"
     models.mkdir(parents=True, exist_ok=True)
     final = models / f"checkpoint_round_{server_round}"
@@ -138,6 +140,8 @@ def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int) -> P
         bundle.policy.save_pretrained(staging)
         bundle.preprocessor.save_pretrained(staging)
         bundle.postprocessor.save_pretrained(staging)
+        for name, stats in client_stats.items():
+            write_json(staging / "client_stats" / f"{name}.json", serialize_dict(stats))
         if final.exists():
             shutil.rmtree(final)
         staging.rename(final)

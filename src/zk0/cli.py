@@ -32,19 +32,39 @@ def _assets(args: argparse.Namespace) -> int:
     return 0
 
 
+def preset_path(name: str) -> Path:
+    """A preset by name (``configs/presets/<name>.toml``) or by path."""
+    path = Path(name) if name.endswith(".toml") else PROJECT_ROOT / "configs" / "presets" / f"{name}.toml"
+    if not path.is_file():
+        known = sorted(p.stem for p in (PROJECT_ROOT / "configs" / "presets").glob("*.toml"))
+        raise Zk0Error(f"Preset {name!r} not found; expected one of {known} or a .toml file.")
+    return path
+
+
+def _toml_value(value: object) -> str:
+    if isinstance(value, bool):
+        return str(value).lower()
+    return f"'{value}'" if isinstance(value, str) else repr(value)
+
+
 def _check(args: argparse.Namespace) -> int:
-    """Validate run-config overrides the way the apps will, before anything starts."""
+    """Validate a preset and run-config overrides the way the apps will, before anything starts."""
     table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
+    overrides = tomllib.loads(preset_path(args.preset).read_text()) if args.preset else {}
     try:
-        overrides = parse_config_args(args.run_config)
+        overrides.update(parse_config_args(args.run_config))
     except Exception as err:  # flwr raises click/TOML errors with a readable message
         raise Zk0Error(f"Run config {args.run_config} cannot be parsed: {getattr(err, 'message', err)}") from None
     run = from_run_config({**flatten_dict(table), **overrides})
     registry = load_registry(run.registry)
     registry.get(run.server_eval_dataset)
-    print(
-        f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, {len(registry.clients)} client datasets."
-    )
+    if args.print:  # one flat override string for `flwr run --run-config`
+        print(" ".join(f"{key}={_toml_value(value)}" for key, value in overrides.items()))
+    else:
+        print(
+            f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, "
+            f"{len(registry.clients)} client datasets."
+        )
     return 0
 
 
@@ -63,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument(
         "--run-config", action="append", default=[], help='overrides as for flwr run, e.g. "local-steps=5"'
     )
+    check.add_argument("--preset", help="a preset name (configs/presets/<name>.toml) or file, applied before overrides")
+    check.add_argument("--print", action="store_true", help="print the merged overrides as one --run-config string")
     check.set_defaults(func=_check)
     return parser
 

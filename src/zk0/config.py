@@ -9,6 +9,7 @@ lets the Python simulation API run with an empty run config.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -17,6 +18,7 @@ from loguru import logger
 from zk0.errors import Zk0Error
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
+VIDEO_BACKENDS = ("torchcodec", "pyav")
 
 
 class ConfigError(Zk0Error):
@@ -45,11 +47,16 @@ class RunConfig:
     device: str = "auto"
     seed: int = 42
     num_workers: int = 0
+    tolerance_s: float = 1e-4
+    video_backend: str = "torchcodec"
     max_skip_fraction: float = 0.1
     output_dir: str = "outputs"
     registry: str = ""
     server_eval_dataset: str = "synth-so100-eval"
     use_wandb: bool = False
+    hf_repo_id: str = ""
+    hf_push_every_checkpoint: bool = False
+    resume_from: str = ""
 
     @property
     def total_steps(self) -> int:
@@ -82,6 +89,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "checkpoint_interval": (1, None, False),
     "chunk_size": (1, None, False),
     "num_workers": (0, None, False),
+    "tolerance_s": (0, None, True),
     "max_skip_fraction": (0, 1, False),
 }
 
@@ -131,5 +139,11 @@ def _check_choices(cfg: RunConfig) -> None:
         raise ConfigError(
             f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} (cuda:N allowed)."
         )
+    if cfg.video_backend not in VIDEO_BACKENDS:
+        raise ConfigError(
+            f"Run-config key 'video-backend' got {cfg.video_backend!r}; expected one of {list(VIDEO_BACKENDS)}."
+        )
+    if cfg.hf_repo_id and not re.fullmatch(r"[\w.-]+/[\w.-]+", cfg.hf_repo_id):
+        raise ConfigError(f"Run-config key 'hf-repo-id' got {cfg.hf_repo_id!r}; expected '<owner>/<model-name>'.")
     if not cfg.model:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")

@@ -18,6 +18,8 @@ from lerobot.datasets import EpisodeAwareSampler
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.datasets.factory import make_dataset
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
+from lerobot.datasets.utils import BackwardCompatibilityError
+from loguru import logger
 from torch.utils.data import DataLoader
 
 from zk0.config import RunConfig
@@ -41,8 +43,25 @@ class DatasetSplit:
 
 def open_metadata(entry: DatasetEntry) -> LeRobotDatasetMetadata:
     """The dataset's metadata (features, stats, episodes) without opening any video."""
-    root = entry.local_root()
-    return LeRobotDatasetMetadata(entry.repo_id, root=root, revision=entry.revision)
+    try:
+        return LeRobotDatasetMetadata(entry.repo_id, root=entry.local_root(), revision=entry.revision)
+    except BackwardCompatibilityError:
+        raise DataError(
+            f"Dataset {entry.name!r} ({entry.repo_id}) is in an older LeRobot format; convert it to v3.0 with "
+            f"`python -m lerobot.scripts.convert_dataset_v21_to_v30 --repo-id={entry.repo_id}` and pin the new revision."
+        ) from None
+
+
+def video_backend(requested: str) -> str:
+    """The requested decoder, or PyAV (named in the log, no traceback) when torchcodec cannot load."""
+    if requested != "torchcodec":
+        return requested
+    try:
+        import torchcodec.decoders  # noqa: F401  # loads FFmpeg's shared libraries
+    except (ImportError, OSError, RuntimeError) as err:
+        logger.warning("torchcodec cannot be loaded ({}); decoding video with pyav instead.", type(err).__name__)
+        return "pyav"
+    return requested
 
 
 def split_episodes(total: int, eval_episodes: int, name: str) -> tuple[list[int], list[int]]:
@@ -55,7 +74,9 @@ def split_episodes(total: int, eval_episodes: int, name: str) -> tuple[list[int]
     return list(range(total - eval_episodes)), list(range(total - eval_episodes, total))
 
 
-def _make(entry: DatasetEntry, policy_cfg: PreTrainedConfig, episodes: list[int] | None) -> LeRobotDataset:
+def _make(
+    entry: DatasetEntry, policy_cfg: PreTrainedConfig, run: RunConfig, episodes: list[int] | None
+) -> LeRobotDataset:
     root = entry.local_root()
     cfg = TrainPipelineConfig(
         dataset=DatasetConfig(
@@ -63,8 +84,10 @@ def _make(entry: DatasetEntry, policy_cfg: PreTrainedConfig, episodes: list[int]
             root=str(root) if root else None,
             episodes=episodes,
             revision=entry.revision,
+            video_backend=video_backend(run.video_backend),
         ),
         policy=policy_cfg,
+        tolerance_s=run.tolerance_s,
     )
     return make_dataset(cfg)
 
@@ -74,12 +97,14 @@ def open_split(
 ) -> DatasetSplit:
     """A client's dataset: training episodes and the held-out ones."""
     train_eps, eval_eps = split_episodes(meta.total_episodes, run.eval_episodes, entry.name)
-    return DatasetSplit(entry, meta, _make(entry, policy_cfg, train_eps), _make(entry, policy_cfg, eval_eps))
+    return DatasetSplit(entry, meta, _make(entry, policy_cfg, run, train_eps), _make(entry, policy_cfg, run, eval_eps))
 
 
-def open_evaluation(entry: DatasetEntry, meta: LeRobotDatasetMetadata, policy_cfg: PreTrainedConfig) -> DatasetSplit:
+def open_evaluation(
+    entry: DatasetEntry, meta: LeRobotDatasetMetadata, policy_cfg: PreTrainedConfig, run: RunConfig
+) -> DatasetSplit:
     """The server's evaluation dataset: every episode is held out."""
-    return DatasetSplit(entry, meta, None, _make(entry, policy_cfg, None))
+    return DatasetSplit(entry, meta, None, _make(entry, policy_cfg, run, None))
 
 
 def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) -> DataLoader:

@@ -81,32 +81,55 @@ def policy_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
     return cfg
 
 
-def model_features(meta: LeRobotDatasetMetadata, entry: DatasetEntry, model_cameras: list[str]) -> dict:
-    """The dataset's state, action and cameras renamed onto the global model's input keys."""
+def model_features(
+    meta: LeRobotDatasetMetadata, entry: DatasetEntry, model_cameras: list[str], expected: dict | None = None
+) -> dict:
+    """The dataset's state, action and cameras renamed onto the global model's input keys.
+
+    Model cameras the dataset does not have are listed too (shaped like one it has): SmolVLA
+    fills them with its empty-camera slots. ``expected`` (a pretrained model's features)
+    fixes the state and action sizes.
+    """
     features = dataset_to_policy_features(meta.features)
     rename = entry.rename_map()
     renamed = {rename.get(key, key): ft for key, ft in features.items()}
     for key in ("observation.state", "action"):
         if key not in renamed:
             raise PolicyError(f"Dataset {entry.name!r} has no {key!r} feature; SmolVLA needs joint state and actions.")
-    cameras = sorted(k for k, ft in renamed.items() if ft.type is FeatureType.VISUAL)
-    if cameras != model_cameras:
+        if expected and key in expected and tuple(expected[key].shape) != tuple(renamed[key].shape):
+            raise PolicyError(
+                f"Dataset {entry.name!r} has {key!r} of shape {list(renamed[key].shape)}; "
+                f"the model expects {list(expected[key].shape)}."
+            )
+    cameras = sorted(k for k, ft in renamed.items() if ft.type is FeatureType.VISUAL and k in model_cameras)
+    if not cameras:
         raise PolicyError(
-            f"Dataset {entry.name!r} maps its cameras to {cameras}; the global model expects {model_cameras} "
-            f"(set cameras = {{...}} in its registry entry, dataset cameras: {sorted(meta.camera_keys)})."
+            f"Dataset {entry.name!r} has no camera mapped onto the model's inputs {model_cameras}; "
+            f"map one of its cameras {sorted(meta.camera_keys)} in its registry entry (cameras = {{...}})."
         )
-    return {k: renamed[k] for k in [*cameras, "observation.state", "action"]}
+    images = {key: renamed.get(key, renamed[cameras[0]]) for key in model_cameras}
+    return {**images, "observation.state": renamed["observation.state"], "action": renamed["action"]}
 
 
 def build_policy(
-    run: RunConfig, meta: LeRobotDatasetMetadata, entry: DatasetEntry, model_cameras: list[str]
+    run: RunConfig, meta: LeRobotDatasetMetadata, entry: DatasetEntry, registry_cameras: list[str]
 ) -> PolicyBundle:
-    """Build SmolVLA + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``."""
+    """Build SmolVLA + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``.
+
+    The model's cameras are a pretrained policy's own image inputs, or for a fresh policy the
+    registry's mapping targets; cameras this dataset lacks become SmolVLA empty-camera slots.
+    """
     device = resolve_device(run.device)
     cfg = policy_config(run, device)
-    features = model_features(meta, entry, model_cameras)
     if cfg.pretrained_path is None:
+        features = model_features(meta, entry, registry_cameras)
         cfg.input_features = {k: ft for k, ft in features.items() if ft.type is not FeatureType.ACTION}
+    else:
+        pretrained = {**cfg.input_features, **cfg.output_features}
+        model_cameras = sorted(k for k, ft in cfg.input_features.items() if ft.type is FeatureType.VISUAL)
+        features = model_features(meta, entry, model_cameras, expected=pretrained)
+    present = set(entry.rename_map().values()) & set(features)
+    cfg.empty_cameras = sum(1 for k, ft in features.items() if ft.type is FeatureType.VISUAL and k not in present)
     torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
     policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
     stats = rename_stats(meta.stats, entry.rename_map())
@@ -160,6 +183,12 @@ def set_trainable(bundle: PolicyBundle, arrays: ArrayRecord) -> None:
             f"Global arrays do not match this policy's trainable parameters (missing {missing}, extra {extra})."
         )
     params = dict(bundle.policy.named_parameters())
+    for name, tensor in incoming.items():
+        if tensor.shape != params[name].shape:
+            raise PolicyError(
+                f"Global tensor {name!r} has shape {list(tensor.shape)}, this policy's has {list(params[name].shape)}; "
+                "the datasets' state/action sizes or the base model differ."
+            )
     with torch.no_grad():
         for name, tensor in incoming.items():
             params[name].copy_(tensor.to(params[name].device, params[name].dtype))

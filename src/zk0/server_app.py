@@ -9,7 +9,9 @@ charts and, every ``checkpoint-interval`` rounds and after the last, a checkpoin
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 
 from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MetricRecord
 from flwr.serverapp import Grid, ServerApp
@@ -18,13 +20,15 @@ from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0.aggregation import ValidatingFedProx, array_signature
-from zk0.artifacts import History, new_run_dir, save_checkpoint
+from zk0.artifacts import History, new_run_dir, save_checkpoint, write_json
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_evaluation, open_metadata
 from zk0.errors import Zk0Error
+from zk0.hub import can_push, publish
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
-from zk0.registry import load_registry
+from zk0.registry import Registry, load_registry
+from zk0.resume import ResumePoint, find_resume_point
 from zk0.stats import stats_from_record
 from zk0.tracking import Tracker
 from zk0.training import evaluate
@@ -35,10 +39,22 @@ app = ServerApp()
 class RoundEnd:
     """Flower's ``evaluate_fn`` hook, the last step of every round: server eval, then artifacts."""
 
-    def __init__(self, run: RunConfig, bundle: PolicyBundle, split: DatasetSplit, history: History, tracker: Tracker):
-        self.run, self.bundle, self.split, self.history, self.tracker = run, bundle, split, history, tracker
+    def __init__(
+        self,
+        run: RunConfig,
+        registry: Registry,
+        bundle: PolicyBundle,
+        split: DatasetSplit,
+        history: History,
+        tracker: Tracker,
+        resumed: ResumePoint | None,
+    ):
+        self.run, self.registry, self.bundle, self.split = run, registry, bundle, split
+        self.history, self.tracker = history, tracker
+        self.push = can_push(run)
         self.loader = eval_loader(split.evaluation, run)
-        self.client_stats: dict[int, dict] = {}
+        self.round_offset = resumed.round if resumed else 0
+        self.client_stats: dict[int, dict] = dict(resumed.client_stats) if resumed else {}
         self.started = time.perf_counter()
 
     def record_clients(
@@ -56,6 +72,9 @@ class RoundEnd:
                 self.client_stats[index] = stats_from_record(msg.content["stats"])
 
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
+        if server_round == 0 and self.round_offset:
+            return None  # a resumed run's starting model is its last checkpoint, already evaluated
+        server_round += self.round_offset
         set_trainable(self.bundle, arrays)
         self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         metrics = None
@@ -68,8 +87,16 @@ class RoundEnd:
         if server_round and (
             server_round % self.run.checkpoint_interval == 0 or server_round == self.run.num_server_rounds
         ):
-            path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round)
+            per_client = {
+                f"client_{i}_{self.history.client_names[i]}": st for i, st in sorted(self.client_stats.items())
+            }
+            path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round, per_client)
             logger.info("Round {} checkpoint: {}", server_round, path)
+            if self.run.hf_repo_id and (
+                self.run.hf_push_every_checkpoint or server_round == self.run.num_server_rounds
+            ):
+                entries = [self.registry.get(n) for n in self.history.participants().values()] + [self.split.entry]
+                publish(self.run, self.history.run_dir, path, server_round, entries, metrics, self.push)
         self.tracker.log(server_round, self.history.round(server_round))
         return MetricRecord(metrics) if metrics else None
 
@@ -80,6 +107,20 @@ class RoundEnd:
         return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
 
 
+def record_run_config(run: RunConfig, run_dir: Path, resumed: ResumePoint | None) -> None:
+    """Keep the run config with the run; a resumed run says which settings changed."""
+    path = run_dir / "server" / "run_config.json"
+    if resumed:
+        logger.info("Resuming {} after round {} (checkpoint {})", run_dir, resumed.round, resumed.checkpoint.name)
+        before = json.loads(path.read_text()) if path.is_file() else {}
+        changed = {k: (before.get(k), v) for k, v in run.to_flat().items() if k != "resume-from" and before.get(k) != v}
+        if changed:
+            logger.warning("The resumed run differs from the original in {}", changed)
+    else:
+        logger.info("Writing to {}", run_dir)
+    write_json(path, run.to_flat())
+
+
 @app.main()
 def main(grid: Grid, context: Context) -> None:
     """Validate the config, build the global model, run FedProx, write artifacts every round."""
@@ -88,22 +129,32 @@ def main(grid: Grid, context: Context) -> None:
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)
         entry = registry.get(run.server_eval_dataset)
+        resumed = find_resume_point(run.resume_from) if run.resume_from else None
     except Zk0Error as err:
         logger.error("zk0: {}", err)  # the one sentence, before Flower's own report of the failure
         raise
-    run_dir = new_run_dir(run.output_dir)
+    run_dir = resumed.run_dir if resumed else new_run_dir(run.output_dir)
     add_file_sink(run_dir / "server" / "server.log", "server")
-    logger.info("Run {} writing to {}", context.run_id, run_dir)
+    record_run_config(run, run_dir, resumed)
+    done = resumed.round if resumed else 0
+    if done >= run.num_server_rounds:
+        logger.info(
+            "{} already has round {} of num-server-rounds={}; nothing to do.", run_dir, done, run.num_server_rounds
+        )
+        return
 
     meta = open_metadata(entry)
     bundle = build_policy(run, meta, entry, registry.model_cameras())
-    initial = get_trainable(bundle)
+    initial = resumed.trainable(bundle) if resumed else get_trainable(bundle)
     fingerprint = backbone_fingerprint(bundle)
     logger.info("Global model: {} trainable tensors, backbone fingerprint {}", len(initial), fingerprint)
 
-    history = History(run_dir, {i: e.name for i, e in enumerate(registry.clients)})
+    history = History(
+        run_dir, {i: e.name for i, e in enumerate(registry.clients)}, dict(resumed.rounds) if resumed else {}
+    )
     tracker = Tracker.start(run, run_dir)
-    round_end = RoundEnd(run, bundle, open_evaluation(entry, meta, bundle.policy.config), history, tracker)
+    split = open_evaluation(entry, meta, bundle.policy.config, run)
+    round_end = RoundEnd(run, registry, bundle, split, history, tracker, resumed)
     strategy = ValidatingFedProx(
         expected=array_signature(initial),
         evaluates_in=run.evaluates_in,
@@ -114,12 +165,13 @@ def main(grid: Grid, context: Context) -> None:
         min_train_nodes=run.min_train_clients,
         min_evaluate_nodes=1,
         min_available_nodes=run.min_train_clients,
+        round_offset=done,
     )
     shared = {"backbone-fingerprint": fingerprint, "run-dir": str(run_dir)}
     strategy.start(
         grid=grid,
         initial_arrays=initial,
-        num_rounds=run.num_server_rounds,
+        num_rounds=run.num_server_rounds - done,
         train_config=ConfigRecord(dict(shared)),
         evaluate_config=ConfigRecord(dict(shared)),
         evaluate_fn=round_end,

@@ -16,6 +16,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import psutil
+
 from zk0.registry import PROJECT_ROOT
 
 CONNECTION = "zk0-sim"
@@ -47,7 +49,28 @@ def local_federation(home: Path) -> Iterator[dict[str, str]]:
     try:
         yield env
     finally:
-        subprocess.run(["pkill", "-f", f"flower-superlink.*--port {port}"], check=False)
+        stop_superlink(env)
+
+
+def superlink_tree(env: dict[str, str]) -> list[psutil.Process]:
+    """The SuperLink on this environment's port and every process under it (simulation, Ray)."""
+    marker = f"--port {env['FLWR_LOCAL_SUPERLINK_HTTP_API_PORT']}"
+    for proc in psutil.process_iter(["cmdline"]):
+        cmdline = " ".join(proc.info["cmdline"] or [])
+        if "flower-superlink" in cmdline and marker in cmdline:
+            return [proc, *proc.children(recursive=True)]
+    return []
+
+
+def stop_superlink(env: dict[str, str], kill: bool = False) -> None:
+    """Terminate (or, with ``kill``, SIGKILL as a crash would) the SuperLink and its children."""
+    tree = superlink_tree(env)
+    for proc in tree:
+        try:
+            proc.kill() if kill else proc.terminate()
+        except psutil.NoSuchProcess:
+            pass
+    psutil.wait_procs(tree, timeout=30)
 
 
 def cpu_federation(num_supernodes: int, actors: int | None = None) -> str:

@@ -1,0 +1,161 @@
+"""Model card and Hugging Face Hub upload of the federated policy.
+
+When ``hf-repo-id`` is set, the final checkpoint (and with ``hf-push-every-checkpoint``
+each checkpoint, tagged ``round-N``) is staged as a lerobot model directory with a
+generated model card and the charts, then uploaded with ``huggingface_hub`` if
+``HF_TOKEN`` is set. Without a token the staged folder stays on disk and one warning
+says so. The token is read from the environment by huggingface_hub and never logged.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from huggingface_hub import HfApi
+from loguru import logger
+
+from zk0.config import RunConfig
+from zk0.registry import DatasetEntry
+
+CARD = """---
+library_name: lerobot
+pipeline_tag: robotics
+base_model: {base_model}
+tags: [lerobot, smolvla, federated-learning, flower, so100, so101]
+datasets:
+{dataset_list}
+---
+
+# {repo_id}
+
+A SmolVLA policy fine-tuned with **federated learning** ([zk0](https://github.com/ivelin/zk0),
+[Flower](https://flower.ai) + [LeRobot](https://github.com/huggingface/lerobot)) across
+{num_clients} SO-100/SO-101 robot datasets whose owners never shared their data. Each client
+trained locally with FedProx (mu = {mu}); the server averaged the trainable parameters
+(FedAvg weighted by samples) for {rounds} rounds.
+
+## Training
+
+| | |
+|---|---|
+| base model | `{base_model}` |
+| rounds x local steps | {rounds} x {local_steps} |
+| batch size / learning rate | {batch_size} / {lr} |
+| FedProx mu | {mu} |
+| clients | {num_clients} |
+| checkpoint | round {round} |
+
+## Datasets
+
+| role | dataset | revision | cameras (dataset -> model) |
+|---|---|---|---|
+{dataset_rows}
+
+## Results (server evaluation on `{eval_dataset}`, never trained on)
+
+{metrics}
+
+![policy loss](policy_loss.png)
+![action MSE](action_mse.png)
+
+The processors carry normalisation statistics merged over all clients; each client's own
+statistics are in `client_stats/` for robot owners who want to normalise with theirs.
+
+## Run it on an SO-100/SO-101 arm
+
+```bash
+pip install "lerobot[smolvla]"
+lerobot-record \\
+  --robot.type=so101_follower --robot.port=/dev/ttyACM0 \\
+  --robot.cameras="{{ camera1: {{type: opencv, index_or_path: 0, width: 640, height: 480, fps: 30}} }}" \\
+  --dataset.repo_id=<you>/eval_{model_name} --dataset.single_task="<your task>" \\
+  --policy.path={repo_id}
+```
+
+Name your cameras after the model's inputs (`camera1`, `camera2`, ...) or pass lerobot's
+`--rename_map` from your camera names to `observation.images.cameraN`.
+"""
+
+
+def model_card(run: RunConfig, repo_id: str, entries: list[DatasetEntry], server_round: int, final: dict | None) -> str:
+    """A Hub model card: base model, every dataset with its revision, the run's settings and results."""
+    rows = "\n".join(
+        f"| {e.role} | `{e.repo_id}` | `{e.revision or 'local'}` | "
+        + ", ".join(f"{src} -> {dst}" for src, dst in e.cameras.items())
+        + " |"
+        for e in entries
+    )
+    metrics = "\n".join(f"- **{k}**: {v:.4g}" for k, v in (final or {}).items()) or "- not evaluated"
+    eval_dataset = next((e.repo_id for e in entries if e.role == "server"), "?")
+    return CARD.format(
+        base_model=run.model if run.model != "tiny" else "zk0 tiny offline SmolVLM backbone",
+        dataset_list="\n".join(f"  - {e.repo_id}" for e in entries),
+        repo_id=repo_id,
+        model_name=repo_id.split("/")[-1],
+        num_clients=sum(e.role == "client" for e in entries),
+        mu=run.proximal_mu,
+        rounds=run.num_server_rounds,
+        local_steps=run.local_steps,
+        batch_size=run.batch_size,
+        lr=run.lr,
+        round=server_round,
+        dataset_rows=rows,
+        eval_dataset=eval_dataset,
+        metrics=metrics,
+    )
+
+
+def stage(checkpoint: Path, card: str, charts: list[Path], dest: Path) -> Path:
+    """Copy a checkpoint, its card and the charts into ``dest``: exactly what gets uploaded."""
+    if dest.exists():
+        shutil.rmtree(dest)
+    shutil.copytree(checkpoint, dest)
+    (dest / "README.md").write_text(card)
+    for chart in charts:
+        if chart.exists():
+            shutil.copy2(chart, dest / chart.name)
+    return dest
+
+
+def can_push(run: RunConfig) -> bool:
+    """Whether checkpoints go to the Hub; says once why not when ``hf-repo-id`` is set without a token."""
+    if not run.hf_repo_id:
+        return False
+    if not os.environ.get("HF_TOKEN"):
+        logger.warning("hf-repo-id is set but HF_TOKEN is not; checkpoints are staged for the Hub under hub/ only.")
+        return False
+    return True
+
+
+def upload(folder: Path, repo_id: str, server_round: int, tag: bool) -> str:
+    """Upload ``folder`` to the model repo ``repo_id`` (tagged ``round-N`` if asked); the commit URL."""
+    api = HfApi()
+    api.create_repo(repo_id, repo_type="model", exist_ok=True)
+    commit = api.upload_folder(
+        repo_id=repo_id, folder_path=str(folder), commit_message=f"zk0: federated SmolVLA, round {server_round}"
+    )
+    if tag:
+        api.create_tag(repo_id, tag=f"round-{server_round}", revision=commit.oid, exist_ok=True)
+    return commit.commit_url
+
+
+def publish(
+    run: RunConfig,
+    run_dir: Path,
+    checkpoint: Path,
+    server_round: int,
+    entries: list[DatasetEntry],
+    final: dict | None,
+    push: bool,
+) -> Path:
+    """Stage ``checkpoint`` for the Hub under ``run_dir/hub/round_<N>``; upload it if ``push``."""
+    card = model_card(run, run.hf_repo_id, entries, server_round, final)
+    charts = [run_dir / "server" / "policy_loss.png", run_dir / "server" / "action_mse.png"]
+    staged = stage(checkpoint, card, charts, run_dir / "hub" / f"round_{server_round}")
+    logger.info("Round {} staged for the Hub in {}", server_round, staged)
+    if push:
+        url = upload(staged, run.hf_repo_id, server_round, tag=run.hf_push_every_checkpoint)
+        logger.info("Round {} pushed to the Hub: {}", server_round, url)
+    return staged

@@ -1,0 +1,71 @@
+"""Resume an interrupted federation from its last complete checkpoint.
+
+A run folder holds everything the server needs: checkpoints are renamed into place only
+once complete, so the highest ``models/checkpoint_round_<N>`` is the resume point; the
+metric history keeps rounds up to N (a round after N that a crash interrupted is run
+again, so every round appears once); the checkpoint's trainable weights become the global
+model and its ``client_stats/`` the clients' statistics. Rounds continue from N + 1 and the
+learning-rate schedule, a function of the global round, continues with them.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from flwr.app import ArrayRecord
+from lerobot.datasets.io_utils import cast_stats_to_numpy
+from safetensors.torch import load_file
+
+from zk0.config import ConfigError
+from zk0.policy import PolicyBundle
+
+CHECKPOINT = re.compile(r"checkpoint_round_(\d+)")
+CLIENT_STATS = re.compile(r"client_(\d+)_.*")
+
+
+@dataclass
+class ResumePoint:
+    """The state of an interrupted run at its last complete checkpoint."""
+
+    run_dir: Path
+    round: int
+    checkpoint: Path
+    rounds: dict[int, dict]
+    client_stats: dict[int, dict]
+
+    def trainable(self, bundle: PolicyBundle) -> ArrayRecord:
+        """The checkpoint's trainable tensors, under the policy's parameter names."""
+        weights = load_file(self.checkpoint / "model.safetensors")
+        missing = [n for n in bundle.trainable_names if n not in weights]
+        if missing:
+            raise ConfigError(f"Checkpoint {str(self.checkpoint)!r} lacks trainable tensors such as {missing[:2]}.")
+        return ArrayRecord({name: weights[name].float() for name in bundle.trainable_names})
+
+
+def find_resume_point(resume_from: str) -> ResumePoint:
+    """Read the last complete checkpoint and the history up to it from a run folder."""
+    run_dir = Path(resume_from).expanduser().resolve()
+    if not (run_dir / "server").is_dir():
+        raise ConfigError(
+            f"Run-config key 'resume-from' got {resume_from!r}; expected a zk0 run folder (outputs/<run>)."
+        )
+    done = sorted(
+        (int(m.group(1)), p)
+        for p in (run_dir / "models").glob("checkpoint_round_*")
+        if (m := CHECKPOINT.fullmatch(p.name)) and (p / "model.safetensors").is_file()
+    )
+    if not done:
+        raise ConfigError(f"Run folder {str(run_dir)!r} has no complete checkpoint to resume from.")
+    last, checkpoint = done[-1]
+    history_file = run_dir / "server" / "metrics_history.json"
+    records = json.loads(history_file.read_text())["rounds"] if history_file.is_file() else []
+    rounds = {r["round"]: r for r in records if r["round"] <= last}
+    stats = {
+        int(m.group(1)): cast_stats_to_numpy(json.loads(p.read_text()))
+        for p in (checkpoint / "client_stats").glob("*.json")
+        if (m := CLIENT_STATS.fullmatch(p.stem))
+    }
+    return ResumePoint(run_dir, last, checkpoint, rounds, stats)
