@@ -17,6 +17,10 @@ Options:
                           one GPU), gpu-serial (one client at a time holds the whole GPU)
   -r, --run-config STR    run-config overrides, e.g. "num-server-rounds=5 local-steps=20";
                           repeatable; keys are listed in pyproject.toml [tool.flwr.app.config]
+  -p, --preset NAME       start from a preset in configs/presets/ (so100: lerobot/smolvla_base
+                          on community SO-100/SO-101 datasets; needs the Hub and a GPU)
+      --resume RUN        continue the interrupted run folder RUN (outputs/<run>) from its
+                          last complete checkpoint; pass the same preset/overrides as before
       --setup-only        set up .venv and the offline assets, then stop
   -h, --help              show this help
 USAGE
@@ -24,6 +28,7 @@ USAGE
 
 mode="cpu"
 setup_only=0
+preset=()
 overrides=()
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -31,6 +36,11 @@ while [ $# -gt 0 ]; do
         mode="$2"; shift 2 ;;
     -r | --run-config) [ $# -ge 2 ] || { echo "train.sh: $1 needs a value such as \"num-server-rounds=3\"." >&2; exit 2; }
         overrides+=(--run-config "$2"); shift 2 ;;
+    -p | --preset) [ $# -ge 2 ] || { echo "train.sh: $1 needs a preset name such as so100." >&2; exit 2; }
+        preset=(--preset "$2"); shift 2 ;;
+    --resume) [ $# -ge 2 ] || { echo "train.sh: $1 needs a run folder such as outputs/2026-01-01_12-00-00." >&2; exit 2; }
+        [ -d "$2" ] || { echo "train.sh: --resume got '$2', which is not a directory; expected a run folder under outputs/." >&2; exit 2; }
+        overrides+=(--run-config "resume-from='$(cd "$2" && pwd)'"); shift 2 ;;
     --setup-only) setup_only=1; shift ;;
     -h | --help) usage; exit 0 ;;
     *) echo "train.sh: unknown option '$1'; see ./train.sh --help." >&2; exit 2 ;;
@@ -44,7 +54,8 @@ esac
 source "$(dirname "$0")/scripts/setup.sh"
 zk0_setup
 cd "$ZK0_ROOT"
-zk0 check "${overrides[@]}" >/dev/null || exit 2
+# One validated override string (preset + output folder + the user's overrides, later wins).
+run_config="$(zk0 check --print "${preset[@]}" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}")" || exit 2
 zk0 assets >/dev/null
 if [ "$setup_only" = 1 ]; then
     zk0_log "Set-up complete; run ./train.sh to start the quick federation."
@@ -60,7 +71,7 @@ fi
 
 zk0_log "Starting the federation (mode: $mode)..."
 log="$(mktemp)"
-flwr run . local --stream --federation-config "configs/federation/$mode.toml" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}" 2>&1 | tee "$log"
+flwr run . local --stream --federation-config "configs/federation/$mode.toml" --run-config "$run_config" 2>&1 | tee "$log"
 # `flwr run --stream` exits 0 even when the ServerApp fails; Flower prints an exit code then.
 if grep -q "Exit Code: [1-9]" "$log"; then
     rm -f "$log"
