@@ -121,3 +121,17 @@ def test_undecodable_video_fails_the_round_with_a_clear_error(tmp_path, registry
     trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
     with pytest.raises(TrainingError, match="could not be decoded, more than max-skip-fraction=0.1"):
         trainer.fit(steps=2, mu=0.0, global_step=0)
+
+
+def test_a_fresh_process_continues_the_data_order_and_the_optimizer(client_parts):
+    bundle, split, trainer = client_parts
+    trainer.fit(steps=3, mu=0.0, global_step=0)
+    record, seen = trainer.optimizer_record(), trainer.batches_seen
+    assert seen == 3 and len(record) > 0
+    fresh = LocalTrainer(bundle, split, train_loader(split.train, trainer.run, bundle.device), trainer.run)
+    fresh.restore(seen, record)
+    assert fresh._next_batch()["index"].tolist() == trainer._next_batch()["index"].tolist()
+    before, after = trainer.optimizer.state_dict()["state"], fresh.optimizer.state_dict()["state"]
+    assert before.keys() == after.keys()
+    for index, state in before.items():
+        torch.testing.assert_close(after[index]["exp_avg_sq"], state["exp_avg_sq"])

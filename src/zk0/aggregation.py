@@ -59,11 +59,24 @@ class ValidatingFedProx(FedProx):
         self.evaluates_in = evaluates_in
         self.recorder = recorder
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
+        self.sampled: set[int] = set()  # nodes asked to train this round
+        self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
 
     def configure_train(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
-        return super().configure_train(server_round + self.round_offset, arrays, config, grid)
+        messages = list(super().configure_train(server_round + self.round_offset, arrays, config, grid))
+        self.sampled = {msg.metadata.dst_node_id for msg in messages}
+        return messages
+
+    def _log_missing(self, server_round: int, valid: list[Message]) -> None:
+        """Name every sampled node whose update did not arrive (crashed, offline, rejected)."""
+        for node in sorted(self.sampled - {msg.metadata.src_node_id for msg in valid}):
+            client = self.node_clients.get(node)
+            who = f"client {client}" if client is not None else "a client that has not replied yet"
+            logger.warning(
+                "Round {}: no usable update from node {} ({}); aggregating the others.", server_round, node, who
+            )
 
     def valid_updates(self, server_round: int, replies: Iterable[Message]) -> list[Message]:
         """Replies that may be averaged; every other one is logged with its reason."""
@@ -79,6 +92,9 @@ class ValidatingFedProx(FedProx):
                 )
                 continue
             valid.append(msg)
+            metrics = next(iter(msg.content.metric_records.values()), {})
+            if "dataset-index" in metrics:
+                self.node_clients[msg.metadata.src_node_id] = int(metrics["dataset-index"])
         return valid
 
     def aggregate_train(
@@ -86,6 +102,7 @@ class ValidatingFedProx(FedProx):
     ) -> tuple[ArrayRecord | None, MetricRecord | None]:
         server_round += self.round_offset
         valid = self.valid_updates(server_round, list(replies))
+        self._log_missing(server_round, valid)
         if len(valid) < self.min_train_nodes:
             logger.warning(
                 "Round {}: {} valid updates, fewer than min-train-clients={}; the global model is kept.",

@@ -9,9 +9,12 @@ from pathlib import Path
 
 from flwr.common.config import flatten_dict, parse_config_args
 
+from zk0 import deploy
 from zk0.assets import TINY_BACKBONE, AssetError, default_cache_root, ensure_backbone, ensure_dataset
 from zk0.assets.datasets import SPECS
+from zk0.certs import make_federation_certs
 from zk0.config import from_run_config
+from zk0.deploy import superlink_command, supernode_command
 from zk0.errors import Zk0Error
 from zk0.registry import PROJECT_ROOT, load_registry
 
@@ -68,6 +71,49 @@ def _check(args: argparse.Namespace) -> int:
     return 0
 
 
+def _certs(args: argparse.Namespace) -> int:
+    """Create the CA, the SuperLink certificate and SuperNode key pairs; print what goes where."""
+    paths = make_federation_certs(Path(args.out), args.host, args.supernode)
+    print(f"CA certificate (give to every SuperNode and flwr user): {paths['ca']}")
+    print(f"SuperLink certificate: {paths['server']} (+ server.key, keep private)")
+    for name in args.supernode:
+        print(
+            f"SuperNode {name}: register {paths[name]} with `flwr supernode register`; its private key: {paths[name].with_suffix('')}"
+        )
+    return 0
+
+
+def _superlink(args: argparse.Namespace) -> int:
+    certs = None if args.insecure else Path(args.certs)
+    host, port = split_address(args.address)
+    database = Path(args.database) if args.database else None
+    run_command(superlink_command(certs, host, port, database), args.dry_run)
+    return 0
+
+
+def _supernode(args: argparse.Namespace) -> int:
+    certs = None if args.insecure else Path(args.certs)
+    load_registry(args.registry).get(args.dataset)  # a typo fails here, not in round 1
+    command = supernode_command(args.superlink, certs, args.key, args.dataset, args.runtime_port)
+    run_command(command, args.dry_run)
+    return 0
+
+
+def split_address(address: str) -> tuple[str, int]:
+    """``host:port`` -> (host, port), with one sentence when it is not that."""
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit():
+        raise Zk0Error(f"Address {address!r} is not host:port; expected e.g. 0.0.0.0:9093.")
+    return host.strip("[]"), int(port)
+
+
+def run_command(command: list[str], dry_run: bool) -> None:
+    if dry_run:
+        print(" ".join(command))
+    else:
+        deploy.run(command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="zk0", description="zk0: federated SmolVLA for SO-100/SO-101 arms.")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -86,6 +132,51 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("--preset", help="a preset name (configs/presets/<name>.toml) or file, applied before overrides")
     check.add_argument("--print", action="store_true", help="print the merged overrides as one --run-config string")
     check.set_defaults(func=_check)
+
+    certs = commands.add_parser("certs", help="create a CA, the SuperLink certificate and SuperNode key pairs")
+    certs.add_argument("--out", default="certificates", help="folder to write them to (default: certificates)")
+    certs.add_argument(
+        "--host", action="append", default=[], help="a DNS name or IP the SuperLink is reached at (repeatable)"
+    )
+    certs.add_argument(
+        "--supernode", action="append", default=[], metavar="NAME", help="a SuperNode key pair to create (repeatable)"
+    )
+    certs.set_defaults(func=_certs)
+
+    superlink = commands.add_parser("superlink", help="start the SuperLink (TLS + SuperNode authentication)")
+    superlink.add_argument("--certs", default="certificates", help="folder from `zk0 certs`")
+    superlink.add_argument(
+        "--address", default="0.0.0.0:9093", help="host:port for SuperNodes and flwr (default 0.0.0.0:9093)"
+    )
+    superlink.add_argument("--database", help="SQLite file for the SuperLink's state (default: in memory)")
+    superlink.add_argument(
+        "--insecure", action="store_true", help="no TLS, no authentication (trusted test networks only)"
+    )
+    superlink.add_argument(
+        "--dry-run", action="store_true", help="print the flower-superlink command instead of running it"
+    )
+    superlink.set_defaults(func=_superlink)
+
+    supernode = commands.add_parser("supernode", help="start a SuperNode for one robot owner's dataset")
+    supernode.add_argument("--superlink", required=True, help="the SuperLink's host:port")
+    supernode.add_argument("--dataset", required=True, help="registry name or repo id of this owner's dataset")
+    supernode.add_argument("--key", help="this SuperNode's key name in <certs>/supernodes/")
+    supernode.add_argument(
+        "--certs", default="certificates", help="folder with ca.crt and supernodes/ (default: certificates)"
+    )
+    supernode.add_argument(
+        "--registry", default="", help="registry TOML the dataset is looked up in (default: pyproject.toml)"
+    )
+    supernode.add_argument(
+        "--runtime-port", type=int, default=9094, help="local port for the ClientApp runtime API (default 9094)"
+    )
+    supernode.add_argument(
+        "--insecure", action="store_true", help="no TLS, no authentication (trusted test networks only)"
+    )
+    supernode.add_argument(
+        "--dry-run", action="store_true", help="print the flower-supernode command instead of running it"
+    )
+    supernode.set_defaults(func=_supernode)
     return parser
 
 

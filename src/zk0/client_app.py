@@ -3,7 +3,9 @@
 Building SmolVLA and opening videos is the expensive part, so a client keeps its policy,
 processors, dataset, data iterator and optimizer in memory for the whole run (one
 ``ClientSession`` per run and node in this process) and only loads the global weights
-each round. Replies carry the trainable arrays, one MetricRecord with the same keys on
+each round. Where a process serves only one message (a SuperNode's ``flwr-clientapp``),
+the optimizer state and the data-order position travel in Flower's ``Context.state``
+instead, so training continues exactly where the previous round stopped. Replies carry the trainable arrays, one MetricRecord with the same keys on
 every client, and the dataset statistics the server merges into its checkpoints.
 """
 
@@ -44,6 +46,9 @@ class ClientSession:
 
 
 _SESSIONS: dict[tuple[int, int], ClientSession] = {}
+# What must outlive the ClientApp process: a SuperNode runs each message in a fresh process and
+# keeps the node's Context.state for the run (see docs/deployment.md).
+OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
 
 
 def dataset_index(registry: Registry, context: Context) -> int:
@@ -77,6 +82,8 @@ def session_for(context: Context, config: ConfigRecord) -> ClientSession:
         bundle = build_policy(run, meta, entry, registry.model_cameras())
         split = open_split(entry, meta, bundle.policy.config, run)
         trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+        if PROGRESS in context.state:  # an earlier process of this client trained already (deployment)
+            trainer.restore(int(context.state[PROGRESS]["batches-seen"]), context.state[OPTIMIZER])
         fingerprint = backbone_fingerprint(bundle)
         logger.info(
             "Opened {} ({} training, {} held-out episodes) and built SmolVLA ({} trainable tensors) on {}",
@@ -114,6 +121,8 @@ def train(msg: Message, context: Context) -> Message:
             run.local_steps, float(msg.content["config"]["proximal-mu"]), (server_round - 1) * run.local_steps
         )
         logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
+        context.state[OPTIMIZER] = session.trainer.optimizer_record()
+        context.state[PROGRESS] = ConfigRecord({"batches-seen": session.trainer.batches_seen})
         content = RecordDict(
             {
                 "arrays": get_trainable(session.bundle),

@@ -23,7 +23,8 @@ from zk0.registry import PROJECT_ROOT
 CONNECTION = "zk0-sim"
 
 
-def _free_port() -> int:
+def free_port() -> int:
+    """A TCP port nothing listens on right now."""
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
@@ -37,12 +38,12 @@ def local_federation(home: Path) -> Iterator[dict[str, str]]:
     """The environment for `flwr run` against a private SuperLink; stops that SuperLink on exit."""
     home.mkdir(parents=True, exist_ok=True)
     (home / "config.toml").write_text(FLOWER_CONFIG)
-    port = _free_port()
+    port = free_port()
     env = {
         **os.environ,
         "FLWR_HOME": str(home),
         "FLWR_LOCAL_SUPERLINK_HTTP_API_PORT": str(port),
-        "FLWR_LOCAL_CONTROL_API_PORT": str(_free_port()),
+        "FLWR_LOCAL_CONTROL_API_PORT": str(free_port()),
         "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1",
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
     }

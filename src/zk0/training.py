@@ -18,7 +18,9 @@ from dataclasses import dataclass, field
 import psutil
 import torch
 from accelerate import Accelerator
+from flwr.app import ArrayRecord
 from lerobot.configs.train import TrainPipelineConfig
+from lerobot.datasets import compute_sampler_state
 from lerobot.optim.factory import make_optimizer_and_scheduler
 from lerobot.scripts.lerobot_train import update_policy
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
@@ -95,6 +97,7 @@ class LocalTrainer:
     accelerator: Accelerator = field(init=False)
     fedprox: FedProx = field(init=False)
     _batches: Iterator | None = field(init=False, default=None)
+    batches_seen: int = field(init=False, default=0)  # batches drawn so far in this run (data order position)
 
     def __post_init__(self) -> None:
         cfg = self.bundle.policy.config
@@ -114,11 +117,32 @@ class LocalTrainer:
     def _next_batch(self) -> dict:
         if self._batches is None:
             self._batches = iter(self.loader)
+        self.batches_seen += 1
         try:
             return next(self._batches)
         except StopIteration:
             self._batches = iter(self.loader)
             return next(self._batches)
+
+    def optimizer_record(self) -> ArrayRecord:
+        """The optimizer's per-parameter state (AdamW moments and step), to outlive this process."""
+        state = self.optimizer.state_dict()["state"]
+        return ArrayRecord({f"{index}/{name}": value for index, st in state.items() for name, value in st.items()})
+
+    def restore(self, batches_seen: int, optimizer: ArrayRecord) -> None:
+        """Continue where an earlier process of this client stopped: data order and optimizer state.
+
+        The data order uses lerobot's own sample-exact resume of its ``EpisodeAwareSampler``.
+        """
+        sampler = self.loader.sampler
+        sampler.load_state_dict(compute_sampler_state(batches_seen, len(sampler), self.run.batch_size, 1))
+        self.batches_seen = batches_seen
+        state: dict[int, dict] = {}
+        for key, value in optimizer.to_torch_state_dict().items():
+            index, name = key.split("/")
+            state.setdefault(int(index), {})[name] = value
+        full = self.optimizer.state_dict()
+        self.optimizer.load_state_dict({**full, "state": state})
 
     def fit(self, steps: int, mu: float, global_step: int) -> dict[str, float]:
         """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics."""

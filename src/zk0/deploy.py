@@ -1,0 +1,80 @@
+"""The Deployment Engine commands for a zk0 federation: one SuperLink, one SuperNode per robot owner.
+
+These build the ``flower-superlink`` and ``flower-supernode`` command lines (TLS and
+SuperNode authentication on by default; ``insecure`` only when asked, with a warning)
+that ``zk0 superlink`` / ``zk0 supernode`` run, so the documented commands and the tested
+ones are the same. The apps are the simulation's: each SuperNode picks its dataset from the
+registry through its node config.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from loguru import logger
+
+from zk0.errors import Zk0Error
+
+INSECURE_WARNING = (
+    "Running WITHOUT TLS: traffic is unencrypted and any SuperNode can join. Use only on a trusted test network."
+)
+
+
+def _need(path: Path, what: str) -> str:
+    if not path.is_file():
+        raise Zk0Error(f"{what} {str(path)!r} does not exist; create it with `zk0 certs`.")
+    return str(path)
+
+
+def superlink_command(certs: Path | None, host: str, port: int, database: Path | None) -> list[str]:
+    """``flower-superlink`` with TLS and SuperNode authentication (``certs`` None = insecure).
+
+    flwr 1.41 serves the Fleet API (SuperNodes), the Control API (``flwr`` CLI) and the
+    ServerApp runtime API over HTTPS on one ``host:port``.
+    """
+    command = ["flower-superlink"]
+    if certs is None:
+        logger.warning(INSECURE_WARNING)
+        command.append("--insecure")
+    else:
+        command += [
+            "--ssl-ca-certfile", _need(certs / "ca.crt", "CA certificate"),
+            "--ssl-certfile", _need(certs / "server.pem", "SuperLink certificate"),
+            "--ssl-keyfile", _need(certs / "server.key", "SuperLink key"),
+            "--enable-supernode-auth",
+        ]  # fmt: skip
+    command += ["--host", host, "--port", str(port), "--disable-runtime-dependency-installation"]
+    if database is not None:
+        command += ["--database", str(database)]
+    return command
+
+
+def supernode_command(
+    superlink: str, certs: Path | None, key: str | None, dataset: str, runtime_port: int
+) -> list[str]:
+    """``flower-supernode`` for one robot owner: their dataset, their key, the federation's CA."""
+    command = ["flower-supernode", "--superlink", superlink]
+    if certs is None:
+        logger.warning(INSECURE_WARNING)
+        command.append("--insecure")
+    else:
+        if not key:
+            raise Zk0Error("A secure SuperNode needs --key <name> (its key pair from `zk0 certs`).")
+        command += [
+            "--root-certificates", _need(certs / "ca.crt", "CA certificate"),
+            "--auth-supernode-private-key", _need(certs / "supernodes" / key, "SuperNode private key"),
+        ]  # fmt: skip
+    command += [
+        "--node-config", f"dataset='{dataset}'",
+        "--host", "127.0.0.1",
+        "--port", str(runtime_port),
+    ]  # fmt: skip
+    return command
+
+
+def run(command: list[str]) -> None:
+    """Replace this process with ``command`` (signals and exit code are Flower's own)."""
+    logger.info("Running: {}", " ".join(command))
+    env = {**os.environ, "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1"}
+    os.execvpe(command[0], command, env)
