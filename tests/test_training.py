@@ -135,3 +135,12 @@ def test_a_fresh_process_continues_the_data_order_and_the_optimizer(client_parts
     assert before.keys() == after.keys()
     for index, state in before.items():
         torch.testing.assert_close(after[index]["exp_avg_sq"], state["exp_avg_sq"])
+
+
+def test_a_stale_session_catches_up_with_a_newer_one(client_parts):
+    bundle, split, stale = client_parts
+    stale.fit(steps=1, mu=0.0, global_step=0)  # its iterator is open at batch 1
+    newer = LocalTrainer(bundle, split, train_loader(split.train, stale.run, bundle.device), stale.run)
+    newer.fit(steps=4, mu=0.0, global_step=0)
+    stale.restore(newer.batches_seen, newer.optimizer_record())
+    assert stale._next_batch()["index"].tolist() == newer._next_batch()["index"].tolist()

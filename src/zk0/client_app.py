@@ -82,8 +82,6 @@ def session_for(context: Context, config: ConfigRecord) -> ClientSession:
         bundle = build_policy(run, meta, entry, registry.model_cameras())
         split = open_split(entry, meta, bundle.policy.config, run)
         trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
-        if PROGRESS in context.state:  # an earlier process of this client trained already (deployment)
-            trainer.restore(int(context.state[PROGRESS]["batches-seen"]), context.state[OPTIMIZER])
         fingerprint = backbone_fingerprint(bundle)
         logger.info(
             "Opened {} ({} training, {} held-out episodes) and built SmolVLA ({} trainable tensors) on {}",
@@ -96,6 +94,18 @@ def session_for(context: Context, config: ConfigRecord) -> ClientSession:
     session = ClientSession(run, index, bundle, split, trainer, eval_loader(split.evaluation, run), fingerprint, party)
     _SESSIONS[key] = session
     return session
+
+
+def _catch_up(session: ClientSession, context: Context) -> None:
+    """Continue from the node's latest training state when another process trained it since.
+
+    A SuperNode runs each message in a new process, and Ray may give a simulated node to another
+    actor for a round; either way the node's ``Context.state`` holds where training stopped.
+    """
+    if PROGRESS in context.state:
+        seen = int(context.state[PROGRESS]["batches-seen"])
+        if seen != session.trainer.batches_seen:
+            session.trainer.restore(seen, context.state[OPTIMIZER])
 
 
 def _load_global(session: ClientSession, msg: Message) -> None:
@@ -115,6 +125,7 @@ def train(msg: Message, context: Context) -> Message:
     session = session_for(context, msg.content["config"])
     with logger.contextualize(party=session.party):
         _load_global(session, msg)
+        _catch_up(session, context)
         server_round = int(msg.content["config"]["server-round"])
         run = session.run
         metrics = session.trainer.fit(

@@ -137,6 +137,7 @@ class LocalTrainer:
         sampler = self.loader.sampler
         sampler.load_state_dict(compute_sampler_state(batches_seen, len(sampler), self.run.batch_size, 1))
         self.batches_seen = batches_seen
+        self._batches = None  # the next batch comes from the restored position
         state: dict[int, dict] = {}
         for key, value in optimizer.to_torch_state_dict().items():
             index, name = key.split("/")
