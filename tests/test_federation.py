@@ -66,6 +66,8 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
             client["train"]
         )
         assert {"policy-loss", "action-mse"} <= set(client["evaluate"])
+        # bf16 on the wire (the default): about half the fp32 bytes of the trainable weights
+        assert 0.45 < client["train"]["update-bytes"] / last["global-arrays"]["bytes"] < 0.55
         client_dir = run / "clients" / f"client_{index}"
         client_log = (client_dir / "client.log").read_text()
         assert "Round 2 train" in client_log and "Round 2 evaluate" in client_log
@@ -131,3 +133,22 @@ def test_bad_run_config_fails_before_training_in_one_sentence(flower_env, tmp_pa
     log = flwr_run(flower_env, f"local-steps=0 output-dir='{out}'", ONE_ACTOR)
     assert "zk0: Run-config key 'local-steps' got 0; expected a value >= 1." in log
     assert not out.exists(), "nothing is written for a run that never starts"
+
+
+def test_bf16_exchange_learns_like_fp32(flower_env, tmp_path):
+    """The learning check, small: bf16 on the wire ends within 10% of fp32's server action MSE."""
+    final = {}
+    for wire in ("float32", "bfloat16"):
+        out = tmp_path / wire
+        log = flwr_run(
+            flower_env,
+            f"num-server-rounds=4 local-steps=10 batch-size=8 lr=2e-3 eval-batches=1000 checkpoint-interval=4 "
+            f"wire-dtype='{wire}' output-dir='{out}'",
+            ONE_ACTOR,
+        )
+        (run,) = out.iterdir()
+        rounds = json.loads((run / "server" / "metrics_history.json").read_text())["rounds"]
+        assert [r["round"] for r in rounds] == [0, 1, 2, 3, 4], log[-3000:]
+        final[wire] = rounds[-1]["server-evaluate"]["action-mse"]
+        assert final[wire] < 0.8 * rounds[0]["server-evaluate"]["action-mse"], "it learns at all"
+    assert abs(final["bfloat16"] - final["float32"]) <= 0.10 * final["float32"], final

@@ -18,6 +18,9 @@ from flwr.serverapp import Grid
 from flwr.serverapp.strategy import FedProx
 from loguru import logger
 
+from zk0.errors import Zk0Error
+from zk0.wire import decode, encode
+
 # (phase, round, the replies that counted, their weighted aggregate)
 ClientRecorder = Callable[[str, int, list[Message], MetricRecord | None], None]
 
@@ -52,10 +55,12 @@ class ValidatingFedProx(FedProx):
         evaluates_in: Callable[[int], bool],
         recorder: ClientRecorder,
         round_offset: int = 0,
+        wire_dtype: str = "float32",
         **kwargs,
     ) -> None:
         super().__init__(**kwargs)
         self.expected = expected
+        self.wire_dtype = wire_dtype  # the global model is kept in fp32; messages carry this dtype
         self.evaluates_in = evaluates_in
         self.recorder = recorder
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
@@ -65,7 +70,8 @@ class ValidatingFedProx(FedProx):
     def configure_train(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
-        messages = list(super().configure_train(server_round + self.round_offset, arrays, config, grid))
+        wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
+        messages = list(super().configure_train(server_round + self.round_offset, wire, config, grid))
         self.sampled = {msg.metadata.dst_node_id for msg in messages}
         return messages
 
@@ -84,6 +90,15 @@ class ValidatingFedProx(FedProx):
         for msg in replies:
             if msg.has_error():
                 logger.warning("Round {}: node {} failed: {}", server_round, msg.metadata.src_node_id, msg.error.reason)
+                continue
+            try:  # averaged in fp32, whatever travelled
+                msg.content[self.arrayrecord_key] = ArrayRecord(
+                    decode(msg.content[self.arrayrecord_key], self.wire_dtype)
+                )
+            except Zk0Error as err:
+                logger.warning(
+                    "Round {}: rejected the update of node {}: {}", server_round, msg.metadata.src_node_id, err
+                )
                 continue
             problem = update_problem(msg.content[self.arrayrecord_key], self.expected)
             if problem:
@@ -122,7 +137,9 @@ class ValidatingFedProx(FedProx):
         server_round += self.round_offset
         if not self.evaluates_in(server_round):
             return []
-        return super().configure_evaluate(server_round, arrays, config, grid)
+        return super().configure_evaluate(
+            server_round, encode(arrays.to_torch_state_dict(), self.wire_dtype), config, grid
+        )
 
     def aggregate_evaluate(self, server_round: int, replies: Iterable[Message]) -> MetricRecord | None:
         server_round += self.round_offset

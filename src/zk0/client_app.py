@@ -23,10 +23,11 @@ from zk0.artifacts import client_dir
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_metadata, open_split, train_loader
 from zk0.logs import add_file_sink, setup_logging
-from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, set_trainable, trainable_tensors
 from zk0.registry import Registry, RegistryError, load_registry
 from zk0.stats import stats_to_record
 from zk0.training import LocalTrainer, evaluate
+from zk0.wire import decode, encode
 
 app = ClientApp()
 
@@ -116,7 +117,7 @@ def _load_global(session: ClientSession, msg: Message) -> None:
             f"Client {session.index} ({session.split.entry.name}) has backbone fingerprint {session.fingerprint}, "
             f"the server has {config['backbone-fingerprint']}; every party must start from the same base model and seed."
         )
-    set_trainable(session.bundle, msg.content["arrays"])
+    set_trainable(session.bundle, decode(msg.content["arrays"], session.run.wire_dtype))
 
 
 @app.train()
@@ -134,10 +135,13 @@ def train(msg: Message, context: Context) -> Message:
         logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
         context.state[OPTIMIZER] = session.trainer.optimizer_record()
         context.state[PROGRESS] = ConfigRecord({"batches-seen": session.trainer.batches_seen})
+        update = encode(trainable_tensors(session.bundle), run.wire_dtype)
         content = RecordDict(
             {
-                "arrays": get_trainable(session.bundle),
-                "metrics": MetricRecord({**metrics, "dataset-index": session.index}),
+                "arrays": update,
+                "metrics": MetricRecord(
+                    {**metrics, "update-bytes": update.count_bytes(), "dataset-index": session.index}
+                ),
                 "stats": stats_to_record(session.bundle.stats),
             }
         )

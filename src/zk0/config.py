@@ -19,6 +19,7 @@ from zk0.errors import Zk0Error
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
+WIRE_DTYPES = ("bfloat16", "float32")  # zk0.wire encodes them
 
 
 class ConfigError(Zk0Error):
@@ -57,6 +58,7 @@ class RunConfig:
     hf_repo_id: str = ""
     hf_push_every_checkpoint: bool = False
     resume_from: str = ""
+    wire_dtype: str = "bfloat16"
 
     @property
     def total_steps(self) -> int:
@@ -139,6 +141,8 @@ def _check_choices(cfg: RunConfig) -> None:
         raise ConfigError(
             f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} (cuda:N allowed)."
         )
+    if cfg.wire_dtype not in WIRE_DTYPES:
+        raise ConfigError(f"Run-config key 'wire-dtype' got {cfg.wire_dtype!r}; expected one of {list(WIRE_DTYPES)}.")
     if cfg.video_backend not in VIDEO_BACKENDS:
         raise ConfigError(
             f"Run-config key 'video-backend' got {cfg.video_backend!r}; expected one of {list(VIDEO_BACKENDS)}."

@@ -17,6 +17,7 @@ from huggingface_hub import HfApi
 from loguru import logger
 
 from zk0.config import RunConfig
+from zk0.policy import OFFLINE_MODELS
 from zk0.registry import DatasetEntry
 
 CARD = """---
@@ -90,7 +91,7 @@ def model_card(run: RunConfig, repo_id: str, entries: list[DatasetEntry], server
     metrics = "\n".join(f"- **{k}**: {v:.4g}" for k, v in (final or {}).items()) or "- not evaluated"
     eval_dataset = next((e.repo_id for e in entries if e.role == "server"), "?")
     return CARD.format(
-        base_model=run.model if run.model != "tiny" else "zk0 tiny offline SmolVLM backbone",
+        base_model=run.model if run.model not in OFFLINE_MODELS else f"zk0 offline {run.model} SmolVLM backbone",
         dataset_list="\n".join(f"  - {e.repo_id}" for e in entries),
         repo_id=repo_id,
         model_name=repo_id.split("/")[-1],

@@ -21,12 +21,13 @@ from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcess
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from transformers import AutoConfig
 
-from zk0.assets import ensure_backbone
+from zk0.assets import FULL_SIZE_BACKBONE, TINY_BACKBONE, ensure_backbone
 from zk0.config import RunConfig
 from zk0.errors import Zk0Error
 from zk0.registry import DatasetEntry
 
-TINY_MODEL = "tiny"
+# Models built offline from a generated backbone (random weights): run-config `model` values.
+OFFLINE_MODELS = {"tiny": TINY_BACKBONE, "full-size": FULL_SIZE_BACKBONE}
 
 
 class PolicyError(Zk0Error):
@@ -57,9 +58,9 @@ def resolve_device(name: str) -> torch.device:
 
 
 def policy_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
-    """SmolVLA's config: a fresh policy on the tiny backbone, or a pretrained policy's own config."""
-    if run.model == TINY_MODEL:
-        backbone = ensure_backbone()
+    """SmolVLA's config: a fresh policy on an offline backbone, or a pretrained policy's own config."""
+    if run.model in OFFLINE_MODELS:
+        backbone = ensure_backbone(kind=OFFLINE_MODELS[run.model])
         image_size = AutoConfig.from_pretrained(backbone).vision_config.image_size
         return SmolVLAConfig(
             vlm_model_name=str(backbone),
@@ -167,15 +168,20 @@ def _pretrained_overrides(cfg: PreTrainedConfig, stats: dict, device: torch.devi
     }
 
 
-def get_trainable(bundle: PolicyBundle) -> ArrayRecord:
-    """The trainable parameters as an ArrayRecord (fp32, CPU), in a fixed order."""
+def trainable_tensors(bundle: PolicyBundle) -> dict[str, torch.Tensor]:
+    """The trainable parameters (fp32, CPU), in a fixed order."""
     params = dict(bundle.policy.named_parameters())
-    return ArrayRecord({name: params[name].detach().to("cpu", torch.float32) for name in bundle.trainable_names})
+    return {name: params[name].detach().to("cpu", torch.float32) for name in bundle.trainable_names}
 
 
-def set_trainable(bundle: PolicyBundle, arrays: ArrayRecord) -> None:
+def get_trainable(bundle: PolicyBundle) -> ArrayRecord:
+    """The trainable parameters as an fp32 ArrayRecord: the server's master copy of the global model."""
+    return ArrayRecord(trainable_tensors(bundle))
+
+
+def set_trainable(bundle: PolicyBundle, arrays: ArrayRecord | dict[str, torch.Tensor]) -> None:
     """Copy global trainable parameters into the policy; names must match exactly."""
-    incoming = arrays.to_torch_state_dict()
+    incoming = arrays.to_torch_state_dict() if isinstance(arrays, ArrayRecord) else arrays
     if set(incoming) != set(bundle.trainable_names):
         missing = sorted(set(bundle.trainable_names) - set(incoming))[:3]
         extra = sorted(set(incoming) - set(bundle.trainable_names))[:3]

@@ -166,6 +166,7 @@ def main(grid: Grid, context: Context) -> None:
         min_evaluate_nodes=1,
         min_available_nodes=run.min_train_clients,
         round_offset=done,
+        wire_dtype=run.wire_dtype,
     )
     shared = {"backbone-fingerprint": fingerprint, "run-dir": str(run_dir)}
     strategy.start(

@@ -18,13 +18,15 @@ from pathlib import Path
 
 from filelock import FileLock
 
-from zk0.assets.backbone import build_tiny_backbone
+from zk0.assets.backbone import SMOLVLM2_500M, TINY, build_backbone
 from zk0.assets.datasets import SPECS, write_synthetic_dataset
 from zk0.errors import Zk0Error
 
 GENERATOR_VERSION = 1
 MANIFEST = "zk0_manifest.json"
 TINY_BACKBONE = "tiny-smolvlm"
+FULL_SIZE_BACKBONE = "smolvlm2-500m-random"
+BACKBONES = {TINY_BACKBONE: TINY, FULL_SIZE_BACKBONE: SMOLVLM2_500M}
 
 
 class AssetError(Zk0Error):
@@ -78,11 +80,11 @@ def _manifest_matches(target: Path, manifest: dict) -> bool:
         return False
 
 
-def ensure_backbone(root: Path | None = None) -> Path:
-    """The tiny SmolVLM backbone dir, built if missing or stale."""
+def ensure_backbone(root: Path | None = None, kind: str = TINY_BACKBONE) -> Path:
+    """A generated SmolVLM backbone dir (tiny, or SmolVLM2-500M-shaped), built if missing or stale."""
     root = _writable_root(root or default_cache_root())
-    manifest = {"asset": TINY_BACKBONE, "version": GENERATOR_VERSION}
-    return _ensure(root / "backbones" / TINY_BACKBONE, manifest, build_tiny_backbone)
+    manifest = {"asset": kind, "version": GENERATOR_VERSION}
+    return _ensure(root / "backbones" / kind, manifest, lambda out: build_backbone(out, BACKBONES[kind]))
 
 
 def synthetic_dataset_root(name: str, root: Path | None = None) -> Path:

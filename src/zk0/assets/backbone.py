@@ -4,13 +4,15 @@ SmolVLA builds its vision-language backbone from ``vlm_model_name`` with
 ``AutoConfig``/``AutoProcessor``. With ``load_vlm_weights=False`` it needs only the
 config, the tokenizer and the processor files, so a few-layer SmolVLM config plus a
 BPE tokenizer trained here on robot-task text gives a real SmolVLA policy of well
-under a million parameters that trains on a CPU in milliseconds per step. The real
-backbone (``HuggingFaceTB/SmolVLM2-500M-Video-Instruct``) is the same code path.
+under a million parameters that trains on a CPU in milliseconds per step. The same
+builder with SmolVLM2-500M's sizes gives a full-size SmolVLA with random weights for
+benchmarks. The real backbone (``HuggingFaceTB/SmolVLM2-500M-Video-Instruct``) is the
+same code path.
 """
 
 from __future__ import annotations
 
-import json
+from dataclasses import dataclass
 from pathlib import Path
 
 from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
@@ -27,10 +29,34 @@ EXTRA_SPECIAL_TOKENS = {
 }
 BASE_SPECIAL_TOKENS = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<pad>", "<unk>"]
 
-IMAGE_SIZE = 64
-PATCH_SIZE = 16
-SCALE_FACTOR = 2
-VOCAB_SIZE = 512
+VOCAB_SIZE = 512  # the locally trained tokenizer's vocabulary
+
+
+@dataclass(frozen=True)
+class BackboneShape:
+    """The sizes of a SmolVLM-shaped backbone; the architecture is always SmolVLM's."""
+
+    text_hidden: int
+    text_intermediate: int
+    text_layers: int
+    text_heads: int
+    text_kv_heads: int
+    head_dim: int
+    vocab_size: int  # >= the tokenizer's; the real model's embedding size for full-size figures
+    vision_hidden: int
+    vision_intermediate: int
+    vision_layers: int
+    vision_heads: int
+    image_size: int
+    patch_size: int
+    scale_factor: int
+
+
+# Well under a million parameters as SmolVLA: trains on a CPU in milliseconds per step.
+TINY = BackboneShape(64, 128, 2, 4, 2, 16, VOCAB_SIZE, 32, 64, 1, 2, 64, 16, 2)
+# SmolVLM2-500M-Video-Instruct's shape with random weights: realistic GPU figures without the Hub.
+SMOLVLM2_500M = BackboneShape(960, 2560, 32, 15, 5, 64, 49280, 768, 3072, 12, 12, 512, 16, 4)
+
 
 # A compact chat template: SmolVLA never renders chats, but AutoProcessor expects one.
 CHAT_TEMPLATE = (
@@ -81,18 +107,17 @@ def _train_tokenizer() -> PreTrainedTokenizerFast:
     return tokenizer
 
 
-def _model_config(tokenizer: PreTrainedTokenizerFast) -> SmolVLMConfig:
-    """A SmolVLM config with the real architecture and toy sizes."""
-    head_dim = 16
+def _model_config(tokenizer: PreTrainedTokenizerFast, shape: BackboneShape) -> SmolVLMConfig:
+    """A SmolVLM config with the real architecture and ``shape``'s sizes."""
     text_config = {
         "model_type": "llama",
-        "vocab_size": len(tokenizer),
-        "hidden_size": 64,
-        "intermediate_size": 128,
-        "num_hidden_layers": 2,
-        "num_attention_heads": 4,
-        "num_key_value_heads": 2,
-        "head_dim": head_dim,
+        "vocab_size": max(shape.vocab_size, len(tokenizer)),
+        "hidden_size": shape.text_hidden,
+        "intermediate_size": shape.text_intermediate,
+        "num_hidden_layers": shape.text_layers,
+        "num_attention_heads": shape.text_heads,
+        "num_key_value_heads": shape.text_kv_heads,
+        "head_dim": shape.head_dim,
         "max_position_embeddings": 2048,
         "rope_theta": 100000.0,
         "rms_norm_eps": 1e-5,
@@ -100,36 +125,31 @@ def _model_config(tokenizer: PreTrainedTokenizerFast) -> SmolVLMConfig:
         "tie_word_embeddings": False,
     }
     vision_config = {
-        "hidden_size": 32,
-        "intermediate_size": 64,
-        "num_hidden_layers": 1,
-        "num_attention_heads": 2,
-        "image_size": IMAGE_SIZE,
-        "patch_size": PATCH_SIZE,
+        "hidden_size": shape.vision_hidden,
+        "intermediate_size": shape.vision_intermediate,
+        "num_hidden_layers": shape.vision_layers,
+        "num_attention_heads": shape.vision_heads,
+        "image_size": shape.image_size,
+        "patch_size": shape.patch_size,
     }
     return SmolVLMConfig(
         text_config=text_config,
         vision_config=vision_config,
-        scale_factor=SCALE_FACTOR,
+        scale_factor=shape.scale_factor,
         image_token_id=tokenizer.convert_tokens_to_ids("<image>"),
         pad_token_id=tokenizer.pad_token_id,
     )
 
 
-def build_tiny_backbone(out_dir: Path) -> Path:
-    """Write config, tokenizer and processor files for a tiny SmolVLM into ``out_dir``."""
+def build_backbone(out_dir: Path, shape: BackboneShape) -> Path:
+    """Write config, tokenizer and processor files for a SmolVLM of ``shape`` into ``out_dir``."""
     out_dir.mkdir(parents=True, exist_ok=True)
     tokenizer = _train_tokenizer()
-    config = _model_config(tokenizer)
-    image_processor = SmolVLMImageProcessor(
-        do_image_splitting=False,
-        size={"longest_edge": IMAGE_SIZE},
-        max_image_size={"longest_edge": IMAGE_SIZE},
-    )
-    video_processor = SmolVLMVideoProcessor(
-        size={"longest_edge": IMAGE_SIZE}, max_image_size={"longest_edge": IMAGE_SIZE}
-    )
-    image_seq_len = (IMAGE_SIZE // PATCH_SIZE) ** 2 // SCALE_FACTOR**2
+    config = _model_config(tokenizer, shape)
+    edge = {"longest_edge": shape.image_size}
+    image_processor = SmolVLMImageProcessor(do_image_splitting=False, size=edge, max_image_size=edge)
+    video_processor = SmolVLMVideoProcessor(size=edge, max_image_size=edge)
+    image_seq_len = (shape.image_size // shape.patch_size) ** 2 // shape.scale_factor**2
     processor = SmolVLMProcessor(
         image_processor=image_processor,
         tokenizer=tokenizer,
@@ -139,7 +159,4 @@ def build_tiny_backbone(out_dir: Path) -> Path:
     )
     config.save_pretrained(out_dir)
     processor.save_pretrained(out_dir)
-    (out_dir / "zk0_backbone.json").write_text(
-        json.dumps({"kind": "tiny-smolvlm", "image_size": IMAGE_SIZE, "vocab_size": len(tokenizer)})
-    )
     return out_dir

@@ -49,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--clients", type=int, default=4)
+    parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-learning")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
@@ -57,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     run_config = (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
         f"lr={args.lr} eval-batches=1000 checkpoint-interval={args.rounds} min-train-clients={args.clients} "
+        f"wire-dtype='{args.wire_dtype}' "
         f"output-dir='{out}'"
     )
     started = time.perf_counter()

@@ -1,0 +1,102 @@
+"""Exchange benchmark: what one client sends and receives per round, and what it costs to handle.
+
+Builds the global SmolVLA exactly as the ServerApp does (tiny, or with ``--full-size`` the
+SmolVLM2-500M-shaped backbone offline with random weights: realistic sizes without the Hub),
+then for each wire dtype measures the bytes per client per direction, the client's encode
+time, and the server's decode + FedAvg time for ``--clients`` updates (Flower's own
+``aggregate_arrayrecords``), against the whole state dict the seed project sent.
+
+    python -m zk0.bench.exchange [--full-size] [--clients 4] [--repeat 3] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import torch
+from flwr.app import ArrayRecord, MetricRecord, RecordDict
+from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
+
+from zk0.config import RunConfig
+from zk0.data import open_metadata
+from zk0.policy import build_policy, trainable_tensors
+from zk0.registry import load_registry
+from zk0.wire import decode, encode
+
+
+def best_of(repeat: int, fn) -> float:
+    """Fastest of ``repeat`` timed calls, in seconds (the least disturbed by the rest of the machine)."""
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def measure(tensors: dict[str, torch.Tensor], wire_dtype: str, clients: int, repeat: int) -> dict:
+    update = encode(tensors, wire_dtype)
+    replies = [
+        RecordDict(
+            {"arrays": ArrayRecord(decode(update, wire_dtype)), "metrics": MetricRecord({"num-examples": 1 + i})}
+        )
+        for i in range(clients)
+    ]
+    return {
+        "wire-dtype": wire_dtype,
+        "tensors": len(update),
+        "bytes-per-direction": update.count_bytes(),
+        "encode-s": best_of(repeat, lambda: encode(tensors, wire_dtype)),
+        "decode-s": best_of(repeat, lambda: decode(update, wire_dtype)),
+        "aggregate-s": best_of(repeat, lambda: aggregate_arrayrecords(replies, "num-examples")),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
+    parser.add_argument("--clients", type=int, default=4)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+
+    registry = load_registry()
+    entry = registry.get("synth-so100-eval")
+    run = RunConfig(model="full-size" if args.full_size else "tiny", device="cpu")
+    started = time.perf_counter()
+    bundle = build_policy(run, open_metadata(entry), entry, registry.model_cameras())
+    build_s = time.perf_counter() - started
+    tensors = trainable_tensors(bundle)
+    state = bundle.policy.state_dict()
+    total = {
+        "model": run.model,
+        "parameters": sum(p.numel() for p in bundle.policy.parameters()),
+        "trainable": sum(t.numel() for t in tensors.values()),
+        "state-dict-tensors": len(state),
+        "state-dict-bytes-fp32": sum(t.numel() * 4 for t in state.values()),
+        "build-s": build_s,
+    }
+    rows = [measure(tensors, dtype, args.clients, args.repeat) for dtype in ("float32", "bfloat16")]
+
+    print(
+        f"model {total['model']}: {total['parameters']:,} parameters, {total['trainable']:,} trainable "
+        f"({rows[0]['tensors']} of {total['state-dict-tensors']} tensors); built in {build_s:.1f} s"
+    )
+    print(f"the whole state dict in fp32: {total['state-dict-bytes-fp32'] / 1e6:,.1f} MB per direction")
+    print(f"{'wire':>9} {'MB/direction':>13} {'encode s':>9} {'decode s':>9} {f'FedAvg x{args.clients} s':>13}")
+    for row in rows:
+        print(
+            f"{row['wire-dtype']:>9} {row['bytes-per-direction'] / 1e6:>13.2f} {row['encode-s']:>9.3f} "
+            f"{row['decode-s']:>9.3f} {row['aggregate-s']:>13.3f}"
+        )
+    if args.json:
+        Path(args.json).write_text(json.dumps({"model": total, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
