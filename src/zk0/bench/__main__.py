@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from zk0.bench import exchange, learning
+from zk0.bench import exchange, learning, round, step
 
-BENCHMARKS = {"learning": learning.main, "exchange": exchange.main}
+BENCHMARKS = {"learning": learning.main, "exchange": exchange.main, "step": step.main, "round": round.main}
 
 
 def main(argv: list[str]) -> int:

@@ -5,7 +5,7 @@ datasets, tiny SmolVLA on the CPU) for several rounds, then prints the server's 
 MSE on its own evaluation dataset after every round next to the MSE of always predicting
 the clients' mean action.
 
-    python -m zk0.bench.learning [--rounds 20] [--local-steps 25] [--json out.json]
+    python -m zk0.bench learning [--rounds 20] [--local-steps 25] [--json out.json]
 """
 
 from __future__ import annotations
