@@ -87,3 +87,14 @@ def test_last_episodes_are_held_out():
     assert split_episodes(6, 2, "d") == ([0, 1, 2, 3], [4, 5])
     with pytest.raises(DataError, match="eval-episodes=6 leaves none to train on"):
         split_episodes(6, RunConfig(eval_episodes=6).eval_episodes, "d")
+
+
+def test_loader_workers_follow_the_client_cpus():
+    import os
+
+    from zk0.data import MAX_WORKERS, loader_workers
+
+    assert loader_workers(RunConfig(num_workers=3)) == 3
+    assert loader_workers(RunConfig(num_workers=0)) == 0
+    expected = max(0, min(MAX_WORKERS, len(os.sched_getaffinity(0)) - 1))
+    assert loader_workers(RunConfig(num_workers=-1)) == expected

@@ -47,7 +47,7 @@ class RunConfig:
     chunk_size: int = 10
     device: str = "auto"
     seed: int = 42
-    num_workers: int = 0
+    num_workers: int = -1  # -1 = chosen from the CPUs this client has (zk0.data.loader_workers)
     tolerance_s: float = 1e-4
     video_backend: str = "torchcodec"
     max_skip_fraction: float = 0.1
@@ -90,7 +90,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "eval_batches": (1, None, False),
     "checkpoint_interval": (1, None, False),
     "chunk_size": (1, None, False),
-    "num_workers": (0, None, False),
+    "num_workers": (-1, None, False),
     "tolerance_s": (0, None, True),
     "max_skip_fraction": (0, 1, False),
 }

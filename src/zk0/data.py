@@ -8,6 +8,7 @@ the loader and the preprocessor (uint8 frames to [0, 1]) plus the registry's tas
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import torch
@@ -107,6 +108,28 @@ def open_evaluation(
     return DatasetSplit(entry, meta, None, _make(entry, policy_cfg, run, None))
 
 
+MAX_WORKERS = 8
+
+
+def available_cpus() -> float:
+    """CPUs this client may use: its Ray share in simulation, else the process's CPU affinity."""
+    try:
+        import ray
+
+        if ray.is_initialized():
+            return float(ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0))
+    except (ImportError, RuntimeError):
+        pass
+    return float(len(os.sched_getaffinity(0)))
+
+
+def loader_workers(run: RunConfig) -> int:
+    """``num-workers``, or for -1 one worker per available CPU beyond the training loop's own (<= 8)."""
+    if run.num_workers >= 0:
+        return run.num_workers
+    return max(0, min(MAX_WORKERS, int(available_cpus()) - 1))
+
+
 def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) -> DataLoader:
     """Shuffled, episode-aware batches for local training (lerobot's sampler, seeded)."""
     sampler = EpisodeAwareSampler(
@@ -121,8 +144,8 @@ def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) 
         dataset,
         batch_size=run.batch_size,
         sampler=sampler,
-        num_workers=run.num_workers,
-        persistent_workers=run.num_workers > 0,
+        num_workers=(workers := loader_workers(run)),
+        persistent_workers=workers > 0,
         pin_memory=device.type == "cuda",
         drop_last=False,
     )
@@ -130,7 +153,7 @@ def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) 
 
 def eval_loader(dataset: LeRobotDataset, run: RunConfig) -> DataLoader:
     """Held-out frames in a fixed order, so every round evaluates the same batches."""
-    return DataLoader(dataset, batch_size=run.batch_size, shuffle=False, num_workers=run.num_workers)
+    return DataLoader(dataset, batch_size=run.batch_size, shuffle=False, num_workers=loader_workers(run))
 
 
 def prepare_batch(batch: dict, camera_keys: list[str], task: str | None) -> dict:
