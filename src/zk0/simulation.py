@@ -8,10 +8,12 @@ SuperLink on the machine, and the SuperLink is stopped afterwards.
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import subprocess
 import sys
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -103,3 +105,18 @@ def flwr_run(env: dict[str, str], run_config: str, federation: str, timeout: flo
         check=False,
     )
     return done.stdout + done.stderr
+
+
+def run_federation(run_config: str, clients: int, output_dir: Path, name: str) -> dict | None:
+    """`flwr run` on a private SuperLink with ``clients`` CPU clients; the run's metric history.
+
+    For benchmarks: on failure it prints the end of Flower's log and one sentence, and returns None.
+    """
+    with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env:
+        log = flwr_run(env, f"{run_config} output-dir='{output_dir}'", cpu_federation(clients))
+    runs = sorted(output_dir.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
+    if not runs or "Exit Code: " in log:
+        print(log[-4000:], file=sys.stderr)
+        print(f"{name}: the federation did not finish; its log is above.", file=sys.stderr)
+        return None
+    return {"run-dir": str(runs[-1].parent.parent), **json.loads(runs[-1].read_text())}

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from zk0.registry import load_registry
-from zk0.simulation import cpu_federation, flwr_run, local_federation
+from zk0.simulation import run_federation
 
 
 def actions(entry, episodes: list[int] | None = None) -> np.ndarray:
@@ -54,23 +53,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
 
-    out = Path(args.output_dir).resolve()
     run_config = (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
         f"lr={args.lr} eval-batches=1000 checkpoint-interval={args.rounds} min-train-clients={args.clients} "
-        f"wire-dtype='{args.wire_dtype}' "
-        f"output-dir='{out}'"
+        f"wire-dtype='{args.wire_dtype}'"
     )
     started = time.perf_counter()
-    with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env:
-        log = flwr_run(env, run_config, cpu_federation(args.clients))
+    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve(), "bench.learning")
     wall = time.perf_counter() - started
-    runs = sorted(out.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
-    if not runs or "Exit Code: " in log:
-        print(log[-4000:], file=sys.stderr)
-        print("bench.learning: the federation did not finish; its log is above.", file=sys.stderr)
+    if history is None:
         return 1
-    history = json.loads(runs[-1].read_text())
     baseline = mean_action_baseline("synth-so100-eval", eval_episodes=2)
 
     print(f"{'round':>5} {'server action MSE':>18} {'mean-action MSE':>16} {'ratio':>6} {'server policy loss':>19}")
@@ -85,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{record['round']:>5} {server['action-mse']:>18.2f} {baseline:>16.2f} {ratio:>6.3f} {server['policy-loss']:>19.4f}"
         )
     print(
-        f"wall time: {wall:.1f} s for {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients; run: {runs[-1].parent.parent}"
+        f"wall time: {wall:.1f} s for {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients; run: {history['run-dir']}"
     )
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "wall-s": wall, "config": run_config}, indent=2))

@@ -14,10 +14,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
-from zk0.simulation import cpu_federation, flwr_run, local_federation
+from zk0.simulation import run_federation
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,19 +29,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
 
-    out = Path(args.output_dir).resolve()
     run_config = (
         f"num-server-rounds=2 local-steps={args.local_steps} batch-size={args.batch_size} model='{args.model}' "
-        f"min-train-clients={args.clients} checkpoint-interval=1 output-dir='{out}'"
+        f"min-train-clients={args.clients} checkpoint-interval=1"
     )
-    with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env:
-        log = flwr_run(env, run_config, cpu_federation(args.clients))
-    runs = sorted(out.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
-    if not runs or "Exit Code: " in log:
-        print(log[-4000:], file=sys.stderr)
-        print("bench.round: the federation did not finish; its log is above.", file=sys.stderr)
+    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve(), "bench.round")
+    if history is None:
         return 1
-    rounds = {r["round"]: r for r in json.loads(runs[-1].read_text())["rounds"]}
+    rounds = {r["round"]: r for r in history["rounds"]}
     wall = rounds[2]["wall-s"] - rounds[1]["wall-s"]
     clients = rounds[2]["clients"].values()
     train = max(c["train"]["step-time"] * args.local_steps for c in clients)  # the slowest client gates the round
