@@ -98,3 +98,16 @@ def test_loader_workers_follow_the_client_cpus():
     assert loader_workers(RunConfig(num_workers=0)) == 0
     expected = max(0, min(MAX_WORKERS, len(os.sched_getaffinity(0)) - 1))
     assert loader_workers(RunConfig(num_workers=-1)) == expected
+
+
+def test_spawned_workers_give_the_same_batches(registry):
+    from zk0.data import eval_loader, open_split
+    from zk0.policy import policy_config, resolve_device
+
+    entry = registry.clients[0]
+    run = RunConfig(batch_size=4, num_workers=1)
+    split = open_split(entry, open_metadata(entry), policy_config(run, resolve_device("cpu")), run)
+    spawned = next(iter(eval_loader(split.evaluation, run)))
+    inline = next(iter(eval_loader(split.evaluation, dataclasses.replace(run, num_workers=0))))
+    assert spawned["index"].tolist() == inline["index"].tolist()
+    assert (spawned["observation.images.front"] == inline["observation.images.front"]).all()

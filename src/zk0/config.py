@@ -47,7 +47,7 @@ class RunConfig:
     chunk_size: int = 10
     device: str = "auto"
     seed: int = 42
-    num_workers: int = -1  # -1 = chosen from the CPUs this client has (zk0.data.loader_workers)
+    num_workers: int = 0  # -1 = chosen from the CPUs this client has (zk0.data.loader_workers)
     tolerance_s: float = 1e-4
     video_backend: str = "torchcodec"
     max_skip_fraction: float = 0.1

@@ -130,6 +130,15 @@ def loader_workers(run: RunConfig) -> int:
     return max(0, min(MAX_WORKERS, int(available_cpus()) - 1))
 
 
+def worker_options(run: RunConfig) -> dict:
+    """DataLoader worker settings: spawned (as lerobot's train script does: the apps' processes run
+    threads, and forking them is unsafe) and persistent across rounds."""
+    workers = loader_workers(run)
+    if workers == 0:
+        return {"num_workers": 0}
+    return {"num_workers": workers, "multiprocessing_context": "spawn", "persistent_workers": True}
+
+
 def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) -> DataLoader:
     """Shuffled, episode-aware batches for local training (lerobot's sampler, seeded)."""
     sampler = EpisodeAwareSampler(
@@ -144,8 +153,7 @@ def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) 
         dataset,
         batch_size=run.batch_size,
         sampler=sampler,
-        num_workers=(workers := loader_workers(run)),
-        persistent_workers=workers > 0,
+        **worker_options(run),
         pin_memory=device.type == "cuda",
         drop_last=False,
     )
@@ -153,7 +161,7 @@ def train_loader(dataset: LeRobotDataset, run: RunConfig, device: torch.device) 
 
 def eval_loader(dataset: LeRobotDataset, run: RunConfig) -> DataLoader:
     """Held-out frames in a fixed order, so every round evaluates the same batches."""
-    return DataLoader(dataset, batch_size=run.batch_size, shuffle=False, num_workers=loader_workers(run))
+    return DataLoader(dataset, batch_size=run.batch_size, shuffle=False, **worker_options(run))
 
 
 def prepare_batch(batch: dict, camera_keys: list[str], task: str | None) -> dict:
