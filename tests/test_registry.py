@@ -111,3 +111,11 @@ def test_spawned_workers_give_the_same_batches(registry):
     inline = next(iter(eval_loader(split.evaluation, dataclasses.replace(run, num_workers=0))))
     assert spawned["index"].tolist() == inline["index"].tolist()
     assert (spawned["observation.images.front"] == inline["observation.images.front"]).all()
+
+
+def test_a_mapped_camera_the_dataset_lacks_is_an_empty_slot(registry):
+    from zk0.policy import build_policy
+
+    entry = dataclasses.replace(registry.clients[1], cameras={"phone": "camera2", "overhead": "camera1"})
+    bundle = build_policy(RunConfig(batch_size=2), open_metadata(entry), entry, registry.model_cameras())
+    assert bundle.policy.config.empty_cameras == 1

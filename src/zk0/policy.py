@@ -129,7 +129,8 @@ def build_policy(
         pretrained = {**cfg.input_features, **cfg.output_features}
         model_cameras = sorted(k for k, ft in cfg.input_features.items() if ft.type is FeatureType.VISUAL)
         features = model_features(meta, entry, model_cameras, expected=pretrained)
-    present = set(entry.rename_map().values()) & set(features)
+    rename = entry.rename_map()
+    present = {rename.get(key, key) for key in meta.camera_keys}  # what the dataset really records
     cfg.empty_cameras = sum(1 for k, ft in features.items() if ft.type is FeatureType.VISUAL and k not in present)
     torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
     policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
