@@ -53,3 +53,13 @@ def test_bad_values_fail_with_one_sentence(overrides, needles):
 def test_evaluation_schedule():
     cfg = dataclasses.replace(RunConfig(), num_server_rounds=5, eval_frequency=2)
     assert [r for r in range(1, 6) if cfg.evaluates_in(r)] == [2, 4, 5]
+
+
+def test_an_output_dir_that_cannot_be_created_is_named(tmp_path):
+    from zk0.artifacts import new_run_dir
+    from zk0.errors import Zk0Error
+
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(Zk0Error, match="'output-dir' got .*file/runs.*expected a writable folder"):
+        new_run_dir(tmp_path / "file" / "runs")
+    assert new_run_dir(tmp_path / "runs").parent == tmp_path / "runs"

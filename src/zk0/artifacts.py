@@ -24,6 +24,7 @@ from lerobot.datasets.utils import serialize_dict
 from matplotlib.figure import Figure  # the object API: no pyplot state, no GUI backend
 from matplotlib.ticker import MaxNLocator
 
+from zk0.errors import Zk0Error
 from zk0.policy import PolicyBundle
 
 CHARTS = {"policy-loss": "policy_loss.png", "action-mse": "action_mse.png"}
@@ -40,7 +41,11 @@ def new_run_dir(output_dir: str | Path) -> Path:
             return candidate
         except FileExistsError:
             continue
-    raise FileExistsError(f"Could not create a new run directory under {base}.")
+        except OSError as err:
+            raise Zk0Error(
+                f"Run-config key 'output-dir' got {str(output_dir)!r}, where no folder can be created ({err.strerror}); expected a writable folder."
+            ) from None
+    raise Zk0Error(f"Could not create a new run folder under {str(base)!r}; 100 runs started in the same second.")
 
 
 def client_dir(run_dir: Path, index: int) -> Path:

@@ -130,10 +130,10 @@ def main(grid: Grid, context: Context) -> None:
         registry = load_registry(run.registry)
         entry = registry.get(run.server_eval_dataset)
         resumed = find_resume_point(run.resume_from) if run.resume_from else None
+        run_dir = resumed.run_dir if resumed else new_run_dir(run.output_dir)
     except Zk0Error as err:
         logger.error("zk0: {}", err)  # the one sentence, before Flower's own report of the failure
         raise
-    run_dir = resumed.run_dir if resumed else new_run_dir(run.output_dir)
     add_file_sink(run_dir / "server" / "server.log", "server")
     record_run_config(run, run_dir, resumed)
     done = resumed.round if resumed else 0
