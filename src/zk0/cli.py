@@ -22,7 +22,7 @@ from zk0.registry import PROJECT_ROOT, load_registry
 def _assets(args: argparse.Namespace) -> int:
     """(Re)generate the offline assets and print where each one is."""
     root = Path(args.cache_dir).expanduser() if args.cache_dir else default_cache_root()
-    names = args.only or [TINY_BACKBONE, *SPECS]
+    names = args.only or [TINY_BACKBONE, *(name for name, spec in SPECS.items() if not spec.benchmark_only)]
     for name in names:
         if name != TINY_BACKBONE and name not in SPECS:
             raise AssetError(f"Unknown asset {name!r}; expected one of {[TINY_BACKBONE, *SPECS]}.")

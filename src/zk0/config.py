@@ -50,6 +50,7 @@ class RunConfig:
     num_workers: int = 0  # -1 = chosen from the CPUs this client has (zk0.data.loader_workers)
     tolerance_s: float = 1e-4
     video_backend: str = "torchcodec"
+    frame_cache_gb: float = 20.0  # disk for decoded frames per dataset (zk0.frames); 0 = decode every batch
     max_skip_fraction: float = 0.1
     output_dir: str = "outputs"
     registry: str = ""
@@ -92,6 +93,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "chunk_size": (1, None, False),
     "num_workers": (-1, None, False),
     "tolerance_s": (0, None, True),
+    "frame_cache_gb": (0, None, False),
     "max_skip_fraction": (0, 1, False),
 }
 

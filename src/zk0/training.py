@@ -175,7 +175,7 @@ class LocalTrainer:
                 logger.warning("Skipped an unreadable batch from {}: {}", self.split.entry.name, err)
                 self._check_skips(skipped, done)
                 continue
-            batch = self.bundle.preprocessor(prepare_batch(batch, cameras, task))
+            batch = self.bundle.preprocessor(prepare_batch(batch, cameras, task, self.bundle.device))
             tracker.dataloading_s = time.perf_counter() - t0
             tracker, _ = update_policy(
                 tracker,
@@ -232,7 +232,7 @@ def evaluate(
         if index >= max_batches:
             break
         raw_action, is_pad = batch["action"].clone(), batch["action_is_pad"].clone()
-        batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task))
+        batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task, bundle.device))
         with torch.random.fork_rng(devices=[bundle.device] if bundle.device.type == "cuda" else []), autocast:
             torch.manual_seed(seed + index)  # same noise and time every round: losses are comparable
             loss, _ = policy.forward(batch)

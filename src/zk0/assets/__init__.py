@@ -107,9 +107,9 @@ def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes:
 
 
 def ensure_all(root: Path | None = None, seed: int = 0) -> dict[str, Path]:
-    """Every offline asset: the backbone and all synthetic datasets."""
+    """Every offline asset the federation uses: the tiny backbone and the synthetic datasets."""
     paths = {TINY_BACKBONE: ensure_backbone(root)}
-    paths.update({name: ensure_dataset(name, root, seed) for name in SPECS})
+    paths.update({name: ensure_dataset(name, root, seed) for name, spec in SPECS.items() if not spec.benchmark_only})
     return paths
 
 

@@ -56,6 +56,7 @@ class SyntheticSpec:
     frames_per_episode: int
     fps: int
     target_region: tuple[float, float, float, float]  # x0, x1, y0, y1 as fractions of the image
+    benchmark_only: bool = False  # generated on demand by benchmarks, not by `zk0 assets`
 
 
 SPECS: dict[str, SyntheticSpec] = {
@@ -130,6 +131,21 @@ SPECS: dict[str, SyntheticSpec] = {
             frames_per_episode=24,
             fps=10,
             target_region=(0.05, 0.95, 0.1, 0.95),
+        ),
+        SyntheticSpec(  # an SO-100's real camera size, so decoding costs what it costs on a robot's data
+            name="synth-so100-480p",
+            repo_id="zk0/synth_so100_480p",
+            robot_type="so100_follower",
+            task_template="Pick up the {colour} cube and place it in the bin.",
+            colours=("red", "green", "blue"),
+            cameras=("front", "wrist"),
+            height=480,
+            width=640,
+            episodes=6,
+            frames_per_episode=60,
+            fps=30,
+            target_region=(0.1, 0.6, 0.3, 0.9),
+            benchmark_only=True,
         ),
     )
 }

@@ -4,9 +4,15 @@ from __future__ import annotations
 
 import sys
 
-from zk0.bench import exchange, learning, round, step
+from zk0.bench import exchange, learning, memory, round, step
 
-BENCHMARKS = {"learning": learning.main, "exchange": exchange.main, "step": step.main, "round": round.main}
+BENCHMARKS = {
+    "learning": learning.main,
+    "exchange": exchange.main,
+    "step": step.main,
+    "round": round.main,
+    "memory": memory.main,
+}
 
 
 def main(argv: list[str]) -> int:

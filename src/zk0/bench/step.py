@@ -3,33 +3,34 @@
 One process, one policy, one batch size; the three loops run in interleaved blocks so that
 machine noise hits them alike:
 
-- ``zk0``: the client's own ``LocalTrainer.fit`` (its DataLoader with video decoding,
-  preprocessing, FedProx hooks, ``update_policy``);
-- ``plain+data``: lerobot's loop as its train script runs it, on the same DataLoader;
+- ``zk0``: the client's own ``LocalTrainer.fit`` (its DataLoader over the decoded-frame
+  cache, frames to the device as uint8, preprocessing, FedProx hooks, ``update_policy``);
+- ``plain+data``: lerobot's loop as its train script runs it, over lerobot's own data path
+  (a DataLoader that decodes video for every sample, frames made float on the host);
 - ``plain``: ``update_policy`` on one pre-loaded, preprocessed batch (the compute floor).
 
-The ratio zk0 / plain is what a GPU client should keep near 1.
+The ratio zk0 / plain is what a GPU client should keep near 1. ``--dataset synth-so100-480p``
+decodes an SO-100's real camera size (480x640, two cameras) instead of the tiny test videos.
 
-    python -m zk0.bench step [--full-size] [--batch-size 8] [--steps 10] [--blocks 3] [--json out.json]
+    python -m zk0.bench step [--full-size] [--dataset NAME] [--batch-size 8] [--steps 10] [--blocks 3]
+                             [--num-workers 0] [--frame-cache-gb 20] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 import time
-from pathlib import Path
+from dataclasses import replace
 
 import torch
 from lerobot.scripts.lerobot_train import update_policy
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
+from torch.utils.data import DataLoader
 
-from zk0.config import RunConfig
-from zk0.data import open_metadata, open_split, prepare_batch, train_loader
-from zk0.policy import build_policy
-from zk0.registry import load_registry
+from zk0.bench.client import add_client_options, bench_client, write_json
+from zk0.data import loader_workers, open_split, train_loader
 from zk0.training import LocalTrainer, peak_memory
 
 
@@ -43,16 +44,24 @@ def _tracker(trainer: LocalTrainer) -> MetricsTracker:
     return MetricsTracker(trainer.run.batch_size, 1, 1, meters)
 
 
-def plain_steps(trainer: LocalTrainer, steps: int, batch: dict | None) -> float:
-    """lerobot's loop: next batch (unless pre-loaded), uint8 -> float, preprocessor, update_policy."""
+def lerobot_batch(batch: dict, cameras: list[str]) -> dict:
+    """What lerobot's train script does between its DataLoader and its preprocessor."""
+    for key in cameras:
+        if key in batch and batch[key].dtype == torch.uint8:
+            batch[key] = batch[key].to(dtype=torch.float32) / 255.0
+    return batch
+
+
+def plain_steps(trainer: LocalTrainer, steps: int, loader: DataLoader | None, batch: dict | None = None) -> float:
+    """lerobot's loop: next batch from ``loader`` (or the pre-loaded one), preprocessor, update_policy."""
     bundle, tracker = trainer.bundle, _tracker(trainer)
-    batches = iter(trainer.loader) if batch is None else None
+    batches = iter(loader) if loader is not None else None
     _sync(bundle.device)
     start = time.perf_counter()
     for _ in range(steps):
         ready = batch
         if ready is None:
-            ready = bundle.preprocessor(prepare_batch(next(batches), trainer.split.meta.camera_keys, None))
+            ready = bundle.preprocessor(lerobot_batch(next(batches), trainer.split.meta.camera_keys))
         update_policy(
             tracker, bundle.policy, ready, trainer.optimizer, trainer.grad_clip_norm,
             accelerator=trainer.accelerator, lr_scheduler=trainer.scheduler,
@@ -71,50 +80,37 @@ def zk0_steps(trainer: LocalTrainer, steps: int) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
-    parser.add_argument("--batch-size", type=int, default=8)
+    add_client_options(parser)
     parser.add_argument("--steps", type=int, default=10, help="steps per block")
     parser.add_argument("--blocks", type=int, default=3, help="interleaved blocks per loop")
-    parser.add_argument("--num-workers", type=int, default=0)
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
 
-    registry = load_registry()
-    entry = registry.clients[0]
-    run = RunConfig(
-        model="full-size" if args.full_size else "tiny",
-        batch_size=args.batch_size,
-        num_workers=args.num_workers,
-        device=args.device,
-        num_server_rounds=1,
-        local_steps=args.steps * args.blocks * 3 + 10,
-    )
-    meta = open_metadata(entry)
-    bundle = build_policy(run, meta, entry, registry.model_cameras())
-    split = open_split(entry, meta, bundle.policy.config, run)
-    trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
-    preloaded = bundle.preprocessor(prepare_batch(next(iter(trainer.loader)), meta.camera_keys, None))
-    zk0_steps(trainer, 2)  # warm-up: first-call allocations, decoder start-up
-    plain_steps(trainer, 2, preloaded)
+    trainer, _, entry = bench_client(args, local_steps=args.steps * args.blocks * 3 + 10)
+    run, bundle, meta = trainer.run, trainer.bundle, trainer.split.meta
+    decoding = open_split(entry, meta, bundle.policy.config, replace(run, frame_cache_gb=0)).train
+    lerobot_loader = train_loader(decoding, run, bundle.device)
+    preloaded = bundle.preprocessor(lerobot_batch(next(iter(lerobot_loader)), meta.camera_keys))
+    zk0_steps(trainer, 2)  # warm-up: first-call allocations, decoder and worker start-up
+    plain_steps(trainer, 2, lerobot_loader)
 
     times: dict[str, list[float]] = {"zk0": [], "plain+data": [], "plain": []}
     for _ in range(args.blocks):
         times["zk0"].append(zk0_steps(trainer, args.steps))
-        times["plain+data"].append(plain_steps(trainer, args.steps, None))
-        times["plain"].append(plain_steps(trainer, args.steps, preloaded))
+        times["plain+data"].append(plain_steps(trainer, args.steps, lerobot_loader))
+        times["plain"].append(plain_steps(trainer, args.steps, None, preloaded))
     median = {name: statistics.median(values) for name, values in times.items()}
 
-    print(f"model {run.model} on {bundle.device}, batch {run.batch_size}, {args.blocks} blocks x {args.steps} steps")
+    print(
+        f"model {run.model} on {bundle.device}, dataset {entry.name}, batch {run.batch_size}, "
+        f"{args.blocks} blocks x {args.steps} steps, {loader_workers(run)} DataLoader workers"
+    )
     print(f"{'loop':>11} {'s/step':>9} {'samples/s':>10} {'vs plain':>9}")
     for name, value in median.items():
         print(f"{name:>11} {value:>9.4f} {run.batch_size / value:>10.1f} {value / median['plain']:>9.3f}")
     memory = peak_memory(bundle.device)
     print(f"peak GPU {memory['peak-gpu-gib']:.2f} GiB, host RSS {memory['host-rss-gib']:.2f} GiB")
-    if args.json:
-        Path(args.json).write_text(
-            json.dumps({"device": str(bundle.device), "median-s": median, "times": times, **memory})
-        )
+    figures = {"device": str(bundle.device), "dataset": entry.name, "median-s": median, "times": times}
+    write_json(args.json, {**figures, **memory})
     return 0
 
 

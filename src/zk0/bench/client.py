@@ -1,0 +1,60 @@
+"""One client built the way the ClientApp builds it, for the in-process benchmarks (step, memory)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from zk0.assets.datasets import SPECS
+from zk0.config import RunConfig
+from zk0.data import open_metadata, open_split, train_loader
+from zk0.policy import build_policy
+from zk0.registry import DatasetEntry, Registry, load_registry
+from zk0.training import LocalTrainer
+
+
+def add_client_options(parser: argparse.ArgumentParser) -> None:
+    """The options both in-process benchmarks take: model, dataset, batch, data path, device, output."""
+    parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
+    parser.add_argument("--dataset", help="a registry name or synth-so100-480p (default: the first client's)")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--num-workers", type=int, default=0, help="DataLoader workers (-1 = the CPUs minus one)")
+    parser.add_argument("--frame-cache-gb", type=float, default=RunConfig.frame_cache_gb, help="0 = decode always")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+
+
+def bench_entry(registry: Registry, name: str | None) -> DatasetEntry:
+    """A registry entry, or a synthetic dataset the registry does not list (the 480p one)."""
+    if name is None:
+        return registry.clients[0]
+    if name in SPECS and name not in {entry.name for entry in registry.entries}:
+        targets = registry.model_cameras()  # observation.images.<target>, sorted
+        cameras = {src: dst.rsplit(".", 1)[-1] for src, dst in zip(SPECS[name].cameras, targets, strict=False)}
+        return DatasetEntry(SPECS[name].repo_id, name, synthetic=True, cameras=cameras)
+    return registry.get(name)
+
+
+def bench_client(args: argparse.Namespace, local_steps: int) -> tuple[LocalTrainer, Registry, DatasetEntry]:
+    """A client's ``LocalTrainer`` (policy, processors, dataset split, loader, optimizer) for ``args``."""
+    registry = load_registry()
+    entry = bench_entry(registry, args.dataset)
+    run = RunConfig(
+        model="full-size" if args.full_size else "tiny",
+        batch_size=args.batch_size,
+        num_workers=args.num_workers,
+        frame_cache_gb=args.frame_cache_gb,
+        device=args.device,
+        num_server_rounds=1,
+        local_steps=local_steps,
+    )
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    split = open_split(entry, meta, bundle.policy.config, run)
+    return LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run), registry, entry
+
+
+def write_json(path: str | None, figures: dict) -> None:
+    if path:
+        Path(path).write_text(json.dumps(figures, indent=2))
