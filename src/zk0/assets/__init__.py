@@ -18,15 +18,14 @@ from pathlib import Path
 
 from filelock import FileLock
 
-from zk0.assets.backbone import SMOLVLM2_500M, TINY, build_backbone
-from zk0.assets.datasets import SPECS, write_synthetic_dataset
+from zk0.assets.datasets import SPECS
 from zk0.errors import Zk0Error
 
 GENERATOR_VERSION = 1
 MANIFEST = "zk0_manifest.json"
 TINY_BACKBONE = "tiny-smolvlm"
 FULL_SIZE_BACKBONE = "smolvlm2-500m-random"
-BACKBONES = {TINY_BACKBONE: TINY, FULL_SIZE_BACKBONE: SMOLVLM2_500M}
+BACKBONES = (TINY_BACKBONE, FULL_SIZE_BACKBONE)
 
 
 class AssetError(Zk0Error):
@@ -82,9 +81,24 @@ def _manifest_matches(target: Path, manifest: dict) -> bool:
 
 def ensure_backbone(root: Path | None = None, kind: str = TINY_BACKBONE) -> Path:
     """A generated SmolVLM backbone dir (tiny, or SmolVLM2-500M-shaped), built if missing or stale."""
+    if kind not in BACKBONES:
+        raise AssetError(f"Unknown backbone {kind!r}; expected one of {list(BACKBONES)}.")
     root = _writable_root(root or default_cache_root())
     manifest = {"asset": kind, "version": GENERATOR_VERSION}
-    return _ensure(root / "backbones" / kind, manifest, lambda out: build_backbone(out, BACKBONES[kind]))
+    return _ensure(root / "backbones" / kind, manifest, lambda out: _build_backbone(out, kind))
+
+
+def _build_backbone(out: Path, kind: str) -> None:
+    # transformers and lerobot load only to build an asset: checking that one is there stays fast.
+    from zk0.assets.backbone import SMOLVLM2_500M, TINY, build_backbone
+
+    build_backbone(out, {TINY_BACKBONE: TINY, FULL_SIZE_BACKBONE: SMOLVLM2_500M}[kind])
+
+
+def _write_dataset(out: Path, name: str, seed: int, episodes: int | None) -> None:
+    from zk0.assets.datasets import write_synthetic_dataset
+
+    write_synthetic_dataset(SPECS[name], out, seed, episodes)
 
 
 def synthetic_dataset_root(name: str, root: Path | None = None) -> Path:
@@ -103,7 +117,7 @@ def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes:
     spec = SPECS[name]
     manifest = {"asset": name, "version": GENERATOR_VERSION, "seed": seed, "episodes": episodes or spec.episodes}
     _quiet_video_encoders()
-    return _ensure(target, manifest, lambda tmp: write_synthetic_dataset(spec, tmp, seed, episodes))
+    return _ensure(target, manifest, lambda tmp: _write_dataset(tmp, name, seed, episodes))
 
 
 def ensure_all(root: Path | None = None, seed: int = 0) -> dict[str, Path]:

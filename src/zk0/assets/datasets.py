@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 JOINT_NAMES = (
     "shoulder_pan.pos",
@@ -203,6 +202,8 @@ def _features(spec: SyntheticSpec) -> dict:
 
 def write_synthetic_dataset(spec: SyntheticSpec, root: Path, seed: int, episodes: int | None = None) -> Path:
     """Record ``spec`` into a LeRobotDataset (v3.0, mp4 video) at ``root``; deterministic in ``seed``."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset  # only to write: reading SPECS stays light
+
     n_episodes = spec.episodes if episodes is None else episodes
     rng = np.random.default_rng([seed, sum(map(ord, spec.name))])
     dataset = LeRobotDataset.create(
