@@ -83,6 +83,7 @@ def test_evaluation_is_seeded_and_reports_unnormalised_mse(client_parts):
     bundle, split, trainer = client_parts
     loader = eval_loader(split.evaluation, trainer.run)
     first, second = (evaluate(bundle, split, loader, max_batches=2, seed=3) for _ in range(2))
+    assert first.pop("eval-s") > 0 and second.pop("eval-s") > 0
     assert first == second
     assert first["num-examples"] == 2 * trainer.run.batch_size
     assert first["action-mse"] > 1.0  # joint positions in degrees, not normalised units

@@ -219,7 +219,9 @@ def peak_memory(device: torch.device) -> dict[str, float]:
 def evaluate(
     bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int
 ) -> dict[str, float]:
-    """Seeded flow-matching policy loss and action-chunk MSE (unnormalised units) on held-out frames."""
+    """Seeded flow-matching policy loss and action-chunk MSE (unnormalised units) on held-out frames,
+    and the seconds it took (what evaluation adds to a round)."""
+    started = time.perf_counter()
     policy = bundle.policy
     policy.eval()
     losses, sq_err, counted, samples = [], 0.0, 0, 0
@@ -250,4 +252,5 @@ def evaluate(
         "policy-loss": sum(losses) / max(1, len(losses)),
         "action-mse": sq_err / max(1, counted),
         "num-examples": samples,
+        "eval-s": time.perf_counter() - started,
     }

@@ -3,8 +3,9 @@
 Runs the real app (`flwr run` on a private local SuperLink) for two rounds of ``--local-steps``
 with ``--clients`` clients and reads the server's history: round 2 is the steady state (round 1
 also builds each client's policy and opens its dataset). Everything but the clients' local
-steps (receive and deserialise, load weights, evaluate on clients and server, serialise,
-aggregate, checkpoint, artifacts, Flower's scheduling) is the overhead.
+steps is the overhead; it is split into evaluation on the clients and on the server (which
+``eval-frequency`` thins out) and the rest: receive and deserialise, load weights, serialise,
+aggregate, checkpoint, charts, Flower's scheduling.
 
     python -m zk0.bench round [--local-steps 200] [--clients 1] [--model tiny] [--json out.json]
 """
@@ -41,11 +42,16 @@ def main(argv: list[str] | None = None) -> int:
     clients = rounds[2]["clients"].values()
     train = max(c["train"]["step-time"] * args.local_steps for c in clients)  # the slowest client gates the round
     overhead = wall - train
+    client_eval = max(c["evaluate"]["eval-s"] for c in clients)
+    server_eval = rounds[2]["server-evaluate"]["eval-s"]
     figures = {
         "round-wall-s": wall,
         "local-steps-s": train,
         "overhead-s": overhead,
         "overhead-fraction": overhead / wall,
+        "client-evaluation-s": client_eval,
+        "server-evaluation-s": server_eval,
+        "rest-s": overhead - client_eval - server_eval,
         "peak-gpu-gib": max(c["train"]["peak-gpu-gib"] for c in clients),
         "host-rss-gib": max(c["train"]["host-rss-gib"] for c in clients),
         "first-round-wall-s": rounds[1]["wall-s"] - rounds[0]["wall-s"],
@@ -54,6 +60,10 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"round 2 (steady state): {wall:.2f} s = {train:.2f} s local steps + {overhead:.2f} s else "
         f"({100 * figures['overhead-fraction']:.1f}% overhead)"
+    )
+    print(
+        f"  overhead: {client_eval:.2f} s client evaluation + {server_eval:.2f} s server evaluation + "
+        f"{figures['rest-s']:.2f} s messages, aggregation, checkpoint, charts ({100 * figures['rest-s'] / wall:.1f}%)"
     )
     print(f"round 1 (builds policy and data): {figures['first-round-wall-s']:.2f} s")
     print(f"per client: peak GPU {figures['peak-gpu-gib']:.2f} GiB, host RSS {figures['host-rss-gib']:.2f} GiB")
