@@ -21,23 +21,26 @@ RUN apt-get update \
 # Ubuntu 24.04 images already use uid 1000 (user ubuntu), so zk0 gets its own.
 # Writable for any uid too: ./train.sh --docker runs as the host user so outputs/ stays theirs.
 RUN useradd --create-home --uid 10001 zk0 \
-    && mkdir -p /workspace/outputs /workspace/.flwr /home/zk0/.cache \
-    && chown zk0:zk0 /workspace /workspace/outputs /workspace/.flwr /home/zk0/.cache \
+    && mkdir -p /workspace/outputs /workspace/.flwr /home/zk0/.cache /opt/zk0 \
+    && chown zk0:zk0 /workspace /workspace/outputs /workspace/.flwr /home/zk0/.cache /opt/zk0 \
     && chmod 1777 /workspace/outputs /workspace/.flwr /home/zk0/.cache
 USER 10001:10001
 WORKDIR /workspace
 
 # Dependencies first (cached while only the code changes), then the project itself, editable,
 # into the .venv that ./train.sh and ./test.sh look for; the stamp tells them it is up to date.
+# .venv links to /opt/zk0/venv, as scripts/setup.sh does: `flwr run` walks every file under the
+# project folder to pack the app but does not enter linked folders.
 COPY --chown=zk0:zk0 pyproject.toml README.md ./
 COPY --chown=zk0:zk0 src/zk0/__init__.py src/zk0/__init__.py
-RUN python3.12 -m venv .venv \
+RUN python3.12 -m venv /opt/zk0/venv \
+    && ln -s /opt/zk0/venv .venv \
     && .venv/bin/pip install -e ".[test]"
 COPY --chown=zk0:zk0 . .
 RUN .venv/bin/pip install --no-deps -e . \
     && sha256sum pyproject.toml | cut -d' ' -f1 > .venv/.zk0-installed
 
-ENV PATH=/workspace/.venv/bin:$PATH \
+ENV PATH=/opt/zk0/venv/bin:$PATH \
     FLWR_HOME=/workspace/.flwr \
     FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION=1 \
     HF_HOME=/home/zk0/.cache/huggingface \
