@@ -44,7 +44,9 @@ zk0_find_python() {
 }
 
 zk0_ensure_ffmpeg() {
-    if ldconfig -p 2>/dev/null | grep -q 'libavutil\.so'; then
+    # grep reads all of ldconfig's output: with -q it stops early, ldconfig dies of SIGPIPE, and
+    # under pipefail that read as "not installed" now and then (an apt-get run for nothing).
+    if ldconfig -p 2>/dev/null | grep 'libavutil\.so' >/dev/null; then
         return 0
     fi
     if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
