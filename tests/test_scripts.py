@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -63,3 +64,22 @@ def test_readme_docker_commands_match_the_image():
     for line in runs:
         for mount in re.findall(r"-v \S+:(/\S+?)(?::ro)?(?=\s)", line):
             assert mount.startswith(("/workspace/", "/home/zk0/.cache")), line
+
+
+def test_flower_packs_the_app_without_walking_the_linked_venv(tmp_path):
+    """.venv links outside the project: Flower's app packing walks every file it can reach under it."""
+    from flwr.cli.utils import collect_files
+
+    env = {**os.environ, "ZK0_CACHE": str(tmp_path / "cache")}
+    home = subprocess.run(
+        ["bash", "-c", "source scripts/setup.sh && zk0_venv_home"],
+        cwd=PROJECT_ROOT, env=env, capture_output=True, text=True, check=True,
+    ).stdout.strip()  # fmt: skip
+    assert Path(home).parent == tmp_path / "cache" / "venvs"
+    (Path(home) / "lib").mkdir(parents=True)
+    (Path(home) / "lib" / "module.py").write_text("")
+    app = tmp_path / "app"
+    app.mkdir()
+    (app / "pyproject.toml").write_text("")
+    (app / ".venv").symlink_to(home)
+    assert set(collect_files(app)) == {"pyproject.toml"}
