@@ -40,6 +40,7 @@ def test_local_epochs_is_an_alias_of_local_steps():
         ({"fraction-evaluate": 1.5}, ["'fraction-evaluate'", "<= 1"]),
         ({"lr": -1e-4}, ["'lr'", "-0.0001"]),
         ({"device": "tpu"}, ["'device'", "'tpu'"]),
+        ({"frame-cache-gb": -1}, ["'frame-cache-gb'", "-1.0", ">= 0"]),
     ],
 )
 def test_bad_values_fail_with_one_sentence(overrides, needles):
