@@ -20,7 +20,7 @@ from zk0.config import RunConfig
 from zk0.data import DataError, open_metadata
 from zk0.policy import PolicyError, build_policy
 from zk0.registry import PROJECT_ROOT, DatasetEntry, load_registry
-from zk0.simulation import CONNECTION, cpu_federation, local_federation, stop_superlink
+from zk0.simulation import CONNECTION, cpu_federation, local_federation, start_superlink, stop_superlink
 
 # Hub-style ids for the generated datasets, as robot owners' registries name community datasets.
 HUB_IDS = {
@@ -86,8 +86,8 @@ def test_resume_after_sigkill_finishes_every_round_once(tmp_path, hub_home):
         f"num-server-rounds=4 local-steps=2 batch-size=4 checkpoint-interval=2 eval-batches=1 "
         f"registry='{registry}' server-eval-dataset='eval' output-dir='{out}'"
     )
-    with local_federation(tmp_path / "flwr-home") as env:
-        env.update({"HF_LEROBOT_HOME": str(home), "HF_HUB_OFFLINE": "1"})
+    offline_hub = {"HF_LEROBOT_HOME": str(home), "HF_HUB_OFFLINE": "1"}
+    with local_federation(tmp_path / "flwr-home", offline_hub) as env:
         first = flwr(env, config)
         deadline = time.monotonic() + 600
         while not list(out.glob("*/models/checkpoint_round_2")):
@@ -98,6 +98,7 @@ def test_resume_after_sigkill_finishes_every_round_once(tmp_path, hub_home):
         (run_dir,) = out.iterdir()
         assert not (run_dir / "models" / "checkpoint_round_4").exists()
 
+        start_superlink(env)  # the restarted SuperLink, as `flwr run` would start it
         second = flwr(env, f"{config} resume-from='{run_dir}'")
         log, _ = second.communicate(timeout=900)
     assert list(out.iterdir()) == [run_dir], "the resumed run continues in the same folder"

@@ -4,6 +4,10 @@ Benchmarks and tests use this so they exercise exactly what users run: the Flowe
 builds the app bundle, a local SuperLink runs the ServerApp and the simulated
 SuperNodes. A private ``FLWR_HOME`` and free ports keep it apart from any other
 SuperLink on the machine, and the SuperLink is stopped afterwards.
+
+`flwr run` starts a missing local SuperLink itself but gives it 15 s, which a 2-core machine
+already running another federation can exceed; so the SuperLink is started here first, with
+the command `flwr run` would use and a patient deadline, and `flwr run` finds it up.
 """
 
 from __future__ import annotations
@@ -14,6 +18,8 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
+import urllib.request
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -36,8 +42,9 @@ FLOWER_CONFIG = f'[superlink]\ndefault = "{CONNECTION}"\n\n[superlink.{CONNECTIO
 
 
 @contextmanager
-def local_federation(home: Path) -> Iterator[dict[str, str]]:
-    """The environment for `flwr run` against a private SuperLink; stops that SuperLink on exit."""
+def local_federation(home: Path, extra_env: dict[str, str] | None = None) -> Iterator[dict[str, str]]:
+    """The environment for `flwr run` against a private SuperLink (started with ``extra_env`` in
+    its environment, which the ServerApp and ClientApps inherit); stops that SuperLink on exit."""
     home.mkdir(parents=True, exist_ok=True)
     (home / "config.toml").write_text(FLOWER_CONFIG)
     port = free_port()
@@ -48,11 +55,44 @@ def local_federation(home: Path) -> Iterator[dict[str, str]]:
         "FLWR_LOCAL_CONTROL_API_PORT": str(free_port()),
         "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1",
         "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}",
+        **(extra_env or {}),
     }
     try:
+        start_superlink(env)
         yield env
     finally:
         stop_superlink(env)
+
+
+def start_superlink(env: dict[str, str], timeout_s: float = 180.0) -> None:
+    """Start the private simulation SuperLink as `flwr run` would, and wait until it answers."""
+    runtime = Path(env["FLWR_HOME"]) / "local-superlink"
+    runtime.mkdir(parents=True, exist_ok=True)
+    port = env["FLWR_LOCAL_SUPERLINK_HTTP_API_PORT"]
+    command = [
+        "flower-superlink", "--insecure", "--simulation", "--isolation", "subprocess",
+        "--control-api-address", f"127.0.0.1:{env['FLWR_LOCAL_CONTROL_API_PORT']}",
+        "--host", "127.0.0.1", "--port", port,
+        "--log-file", str(runtime / "superlink.log"), "--database", str(runtime / "state.db"),
+    ]  # fmt: skip
+    process = subprocess.Popen(
+        command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
+    direct = urllib.request.build_opener(urllib.request.ProxyHandler({}))  # localhost, never via a proxy
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise RuntimeError(
+                f"flower-superlink exited with code {process.returncode}; see {runtime / 'superlink.log'}."
+            )
+        try:
+            with direct.open(f"http://127.0.0.1:{port}/health", timeout=1.0):
+                return  # answered 2xx (urlopen raises on errors)
+        except OSError:
+            pass
+        time.sleep(0.2)
+    process.kill()
+    raise RuntimeError(f"flower-superlink did not answer within {timeout_s:.0f} s; see {runtime / 'superlink.log'}.")
 
 
 def superlink_tree(env: dict[str, str]) -> list[psutil.Process]:
