@@ -56,10 +56,9 @@ class FrameCache:
 
     def frames(self, episode: int, camera: str, timestamps: list[float]) -> torch.Tensor | None:
         """The cached frames at ``timestamps`` (lerobot's layout and dtype), or None if any is unknown."""
-        rows = self.rows.get(episode)
-        if (episode, camera) not in self.stored or rows is None or any(ts not in rows for ts in timestamps):
+        key, rows = (episode, camera), self.rows.get(episode)
+        if key not in self.stored or rows is None or any(ts not in rows for ts in timestamps):
             return None
-        key = (episode, camera)
         if key not in self._maps:
             self._maps[key] = np.load(self.path(episode, camera), mmap_mode="r")
         frames = torch.from_numpy(np.ascontiguousarray(self._maps[key][[rows[ts] for ts in timestamps]]))
@@ -78,12 +77,12 @@ class FrameCache:
 
 def cache_key(dataset: LeRobotDataset, backend: str) -> str:
     """A digest of what the decoded frames depend on: the video files and the decoder."""
-    videos = sorted((dataset.root / "videos").rglob("*.mp4"))
+    videos = {str(p.relative_to(dataset.root)): p.stat() for p in (dataset.root / "videos").rglob("*.mp4")}
     described = {
         "repo_id": dataset.repo_id,
         "backend": backend,
         "features": {key: dataset.meta.features[key] for key in dataset.meta.video_keys},
-        "videos": [(str(p.relative_to(dataset.root)), p.stat().st_size, p.stat().st_mtime_ns) for p in videos],
+        "videos": sorted((name, st.st_size, st.st_mtime_ns) for name, st in videos.items()),
     }
     return hashlib.sha256(json.dumps(described, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -173,7 +172,7 @@ def attach_frame_cache(
                                name, cam, ep, err)  # fmt: skip
                 continue
             cache.stored.add((ep, cam))
-    built = len(todo) - len([key for key in todo if key not in cache.stored])
+    built = sum(key in cache.stored for key in todo)
     if built:
         logger.info(
             "Dataset {!r}: decoded {} episode videos into the frame cache under {} in {:.1f} s.",
