@@ -32,7 +32,7 @@ WORKDIR /workspace
 # .venv links to /opt/zk0/venv, as scripts/setup.sh does: `flwr run` walks every file under the
 # project folder to pack the app but does not enter linked folders.
 COPY --chown=zk0:zk0 pyproject.toml README.md ./
-COPY --chown=zk0:zk0 src/zk0/__init__.py src/zk0/__init__.py
+COPY --chown=zk0:zk0 zk0/__init__.py zk0/__init__.py
 RUN python3.12 -m venv /opt/zk0/venv \
     && ln -s /opt/zk0/venv .venv \
     && .venv/bin/pip install -e ".[test]"

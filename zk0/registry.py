@@ -18,7 +18,7 @@ from zk0.assets import ensure_dataset
 from zk0.assets.datasets import SPECS
 from zk0.errors import Zk0Error
 
-PROJECT_ROOT = Path(__file__).resolve().parents[2]
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("client", "server")
 
 
