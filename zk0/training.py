@@ -67,6 +67,24 @@ class FedProx:
         return float(self.mu / 2 * sq)
 
 
+def metrics_tracker(batch_size: int, frames: int, episodes: int) -> MetricsTracker:
+    """The meters ``update_policy`` writes to, as lerobot's train script registers them.
+
+    On CUDA ``update_policy`` also records ``gpu_mem_gb``, and a tracker without that meter
+    raises at the first step: a GPU-only path that no CPU run exercises.
+    """
+    meters = {
+        "loss": AverageMeter("loss"),
+        "grad_norm": AverageMeter("grdn"),
+        "lr": AverageMeter("lr"),
+        "update_s": AverageMeter("updt_s"),
+        "dataloading_s": AverageMeter("data_s"),
+    }
+    if torch.cuda.is_available():
+        meters["gpu_mem_gb"] = AverageMeter("mem_gb", ":.2f", reduction="max")
+    return MetricsTracker(batch_size, frames, episodes, meters)
+
+
 def accelerator_for(device: torch.device) -> Accelerator:
     """Single-device Accelerator: bf16 autocast on GPUs that support it, full precision elsewhere."""
     bf16 = device.type == "cuda" and torch.cuda.is_bf16_supported()
@@ -129,15 +147,18 @@ class LocalTrainer:
         state = self.optimizer.state_dict()["state"]
         return ArrayRecord({f"{index}/{name}": value for index, st in state.items() for name, value in st.items()})
 
-    def restore(self, batches_seen: int, optimizer: ArrayRecord) -> None:
+    def restore(self, batches_seen: int, optimizer: ArrayRecord | None) -> None:
         """Continue where an earlier process of this client stopped: data order and optimizer state.
 
-        The data order uses lerobot's own sample-exact resume of its ``EpisodeAwareSampler``.
+        The data order uses lerobot's own sample-exact resume of its ``EpisodeAwareSampler``;
+        without ``optimizer`` the optimizer keeps the state it has.
         """
         sampler = self.loader.sampler
         sampler.load_state_dict(compute_sampler_state(batches_seen, len(sampler), self.run.batch_size, 1))
         self.batches_seen = batches_seen
         self._batches = None  # the next batch comes from the restored position
+        if optimizer is None:
+            return
         state: dict[int, dict] = {}
         for key, value in optimizer.to_torch_state_dict().items():
             index, name = key.split("/")
@@ -149,18 +170,7 @@ class LocalTrainer:
         """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics."""
         self.fedprox.anchor_at(mu)
         set_schedule_step(self.scheduler, global_step)
-        tracker = MetricsTracker(
-            self.run.batch_size,
-            self.split.meta.total_frames,
-            self.split.meta.total_episodes,
-            {
-                "loss": AverageMeter("loss"),
-                "grad_norm": AverageMeter("grdn"),
-                "lr": AverageMeter("lr"),
-                "update_s": AverageMeter("updt_s"),
-                "dataloading_s": AverageMeter("data_s"),
-            },
-        )
+        tracker = metrics_tracker(self.run.batch_size, self.split.meta.total_frames, self.split.meta.total_episodes)
         cameras, task = self.split.meta.camera_keys, self.split.entry.task
         done = skipped = samples = 0
         started = time.perf_counter()

@@ -19,6 +19,7 @@ decodes an SO-100's real camera size (480x640, two cameras) instead of the tiny 
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 import sys
 import time
@@ -26,12 +27,12 @@ from dataclasses import replace
 
 import torch
 from lerobot.scripts.lerobot_train import update_policy
-from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
+from lerobot.utils.logging_utils import MetricsTracker
 from torch.utils.data import DataLoader
 
 from zk0.bench.client import add_client_options, bench_client, write_json
 from zk0.data import loader_workers, open_split, train_loader
-from zk0.training import LocalTrainer, peak_memory
+from zk0.training import LocalTrainer, metrics_tracker, peak_memory
 
 
 def _sync(device: torch.device) -> None:
@@ -40,8 +41,7 @@ def _sync(device: torch.device) -> None:
 
 
 def _tracker(trainer: LocalTrainer) -> MetricsTracker:
-    meters = {name: AverageMeter(name) for name in ("loss", "grad_norm", "lr", "update_s", "dataloading_s")}
-    return MetricsTracker(trainer.run.batch_size, 1, 1, meters)
+    return metrics_tracker(trainer.run.batch_size, 1, 1)
 
 
 def lerobot_batch(batch: dict, cameras: list[str]) -> dict:
@@ -55,7 +55,7 @@ def lerobot_batch(batch: dict, cameras: list[str]) -> dict:
 def plain_steps(trainer: LocalTrainer, steps: int, loader: DataLoader | None, batch: dict | None = None) -> float:
     """lerobot's loop: next batch from ``loader`` (or the pre-loaded one), preprocessor, update_policy."""
     bundle, tracker = trainer.bundle, _tracker(trainer)
-    batches = iter(loader) if loader is not None else None
+    batches = itertools.chain.from_iterable(itertools.repeat(loader)) if loader is not None else None  # epochs
     _sync(bundle.device)
     start = time.perf_counter()
     for _ in range(steps):
