@@ -31,13 +31,7 @@ def run_config():
 @pytest.fixture
 def client_parts(registry, run_config):
     """Policy bundle, dataset split and trainer for client 0, built the way the ClientApp builds them."""
-    from zk0.data import open_metadata, open_split, train_loader
-    from zk0.policy import build_policy
-    from zk0.training import LocalTrainer
+    from zk0.client import build_client
 
-    entry = registry.clients[0]
-    meta = open_metadata(entry)
-    bundle = build_policy(run_config, meta, entry, registry.model_cameras())
-    split = open_split(entry, meta, bundle.policy.config, run_config)
-    trainer = LocalTrainer(bundle, split, train_loader(split.train, run_config, bundle.device), run_config)
-    return bundle, split, trainer
+    client = build_client(run_config, registry.clients[0], registry.model_cameras())
+    return client.bundle, client.split, client.trainer

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shlex
 import sys
 import tomllib
 from pathlib import Path
@@ -14,7 +16,7 @@ from zk0.assets import TINY_BACKBONE, AssetError, default_cache_root, ensure_bac
 from zk0.assets.datasets import SPECS
 from zk0.certs import make_federation_certs
 from zk0.config import from_run_config
-from zk0.deploy import superlink_command, supernode_command
+from zk0.deploy import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
 from zk0.errors import Zk0Error
 from zk0.registry import PROJECT_ROOT, load_registry
 
@@ -94,8 +96,16 @@ def _superlink(args: argparse.Namespace) -> int:
 def _supernode(args: argparse.Namespace) -> int:
     certs = None if args.insecure else Path(args.certs)
     load_registry(args.registry).get(args.dataset)  # a typo fails here, not in round 1
-    command = supernode_command(args.superlink, certs, args.key, args.dataset, args.runtime_port)
-    run_command(command, args.dry_run)
+    cpus = len(os.sched_getaffinity(0))
+    if args.cpus is not None and not 1 <= args.cpus <= cpus:
+        raise Zk0Error(f"--cpus got {args.cpus}; expected a number from 1 to {cpus}, the CPUs this process may use.")
+    config = node_config(args.dataset, Path(args.output_dir).expanduser().resolve(), not args.no_warm_worker)
+    command = supernode_command(args.superlink, certs, args.key, config, args.runtime_port)
+    env = {**thread_env(args.cpus or cpus), **SUPEREXEC_POLL}
+    if args.dry_run:
+        print(" ".join(f"{k}={v}" for k, v in env.items()), shlex.join(command))
+    else:
+        deploy.run(command, env)
     return 0
 
 
@@ -169,6 +179,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     supernode.add_argument(
         "--runtime-port", type=int, default=9094, help="local port for the ClientApp runtime API (default 9094)"
+    )
+    supernode.add_argument(
+        "--output-dir",
+        default="outputs",
+        help="this machine's folder for the client's logs, <output-dir>/<run>/clients/ (default: outputs)",
+    )
+    supernode.add_argument(
+        "--cpus", type=int, help="CPU threads for training and data loading (default: all this process may use)"
+    )
+    supernode.add_argument(
+        "--no-warm-worker",
+        action="store_true",
+        help="build the client in every message's own process instead of keeping it in a worker (slow)",
     )
     supernode.add_argument(
         "--insecure", action="store_true", help="no TLS, no authentication (trusted test networks only)"

@@ -119,7 +119,8 @@ MAX_WORKERS = 8
 
 
 def available_cpus() -> float:
-    """CPUs this client may use: its Ray share in simulation, else the process's CPU affinity."""
+    """CPUs this client may use: its Ray share in simulation, ``zk0 supernode --cpus`` (``ZK0_CPUS``)
+    on a SuperNode, else the process's CPU affinity."""
     try:
         import ray
 
@@ -127,6 +128,8 @@ def available_cpus() -> float:
             return float(ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0))
     except (ImportError, RuntimeError):
         pass
+    if os.environ.get("ZK0_CPUS", "").isdigit():
+        return float(os.environ["ZK0_CPUS"])
     return float(len(os.sched_getaffinity(0)))
 
 

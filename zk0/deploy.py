@@ -4,7 +4,8 @@ These build the ``flower-superlink`` and ``flower-supernode`` command lines (TLS
 SuperNode authentication on by default; ``insecure`` only when asked, with a warning)
 that ``zk0 superlink`` / ``zk0 supernode`` run, so the documented commands and the tested
 ones are the same. The apps are the simulation's: each SuperNode picks its dataset from the
-registry through its node config.
+registry through its node config, writes its client's log under its own output folder, and
+keeps its client built in a warm worker (``zk0.worker``) between messages.
 """
 
 from __future__ import annotations
@@ -50,10 +51,18 @@ def superlink_command(certs: Path | None, host: str, port: int, database: Path |
     return command
 
 
+def node_config(dataset: str, output_dir: Path, warm_worker: bool) -> str:
+    """The SuperNode's node config: the owner's dataset, where their client writes, the warm worker."""
+    for name, value in (("--dataset", dataset), ("--output-dir", str(output_dir))):
+        if "'" in value:
+            raise Zk0Error(f"{name} got {value!r}; expected a value without single quotes.")
+    return f"dataset='{dataset}' output-dir='{output_dir}' warm-worker={str(warm_worker).lower()}"
+
+
 def supernode_command(
-    superlink: str, certs: Path | None, key: str | None, dataset: str, runtime_port: int
+    superlink: str, certs: Path | None, key: str | None, node_config: str, runtime_port: int
 ) -> list[str]:
-    """``flower-supernode`` for one robot owner: their dataset, their key, the federation's CA."""
+    """``flower-supernode`` for one robot owner: their node config, their key, the federation's CA."""
     command = ["flower-supernode", "--superlink", superlink]
     if certs is None:
         logger.warning(INSECURE_WARNING)
@@ -66,15 +75,31 @@ def supernode_command(
             "--auth-supernode-private-key", _need(certs / "supernodes" / key, "SuperNode private key"),
         ]  # fmt: skip
     command += [
-        "--node-config", f"dataset='{dataset}'",
+        "--node-config", node_config,
         "--host", "127.0.0.1",
         "--port", str(runtime_port),
     ]  # fmt: skip
     return command
 
 
-def run(command: list[str]) -> None:
+def thread_env(cpus: int) -> dict[str, str]:
+    """Thread limits for everything a SuperNode starts (ClientApp processes, the warm worker).
+
+    Ray sets these for simulated clients; nothing does on a SuperNode, and two SuperNodes on one
+    machine, each using every core, made PyTorch's steps 22x slower. ``ZK0_CPUS`` also sizes the
+    DataLoader workers (``num-workers = -1``).
+    """
+    value = str(cpus)
+    return {"ZK0_CPUS": value, "OMP_NUM_THREADS": value, "MKL_NUM_THREADS": value}
+
+
+# Flower's SuperExec looks for a new ClientApp task every second by default; every message waits
+# for that poll, so a SuperNode started by zk0 looks ten times a second (a local SQLite query).
+SUPEREXEC_POLL = {"FLWR_SUPEREXEC_TASK_POLL_INTERVAL": "0.1"}
+
+
+def run(command: list[str], env: dict[str, str] | None = None) -> None:
     """Replace this process with ``command`` (signals and exit code are Flower's own)."""
     logger.info("Running: {}", " ".join(command))
-    env = {**os.environ, "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1"}
+    env = {**os.environ, **(env or {}), "FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION": "1"}
     os.execvpe(command[0], command, env)

@@ -7,9 +7,8 @@ import json
 from pathlib import Path
 
 from zk0.assets.datasets import SPECS
+from zk0.client import build_client
 from zk0.config import RunConfig
-from zk0.data import open_metadata, open_split, train_loader
-from zk0.policy import build_policy
 from zk0.registry import DatasetEntry, Registry, load_registry
 from zk0.training import LocalTrainer
 
@@ -49,10 +48,7 @@ def bench_client(args: argparse.Namespace, local_steps: int) -> tuple[LocalTrain
         num_server_rounds=1,
         local_steps=local_steps,
     )
-    meta = open_metadata(entry)
-    bundle = build_policy(run, meta, entry, registry.model_cameras())
-    split = open_split(entry, meta, bundle.policy.config, run)
-    return LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run), registry, entry
+    return build_client(run, entry, registry.model_cameras()).trainer, registry, entry
 
 
 def write_json(path: str | None, figures: dict) -> None:

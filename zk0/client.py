@@ -1,0 +1,224 @@
+"""One robot owner's client: dataset, SmolVLA and local trainer, built once and reused every round.
+
+``build_client`` is the one way a client is built (the ClientApp, the SuperNode's warm worker
+and the benchmarks call it). ``handle`` answers one train or evaluate message with it: it
+checks the server's fingerprints, loads the global weights, trains or evaluates, and says in
+the reply's metrics where the message's time went (process start, model build, state restore,
+steps, evaluation), so the deployment benchmark can split a round without guessing.
+
+A process keeps one ``ClientSession`` per run and node (a Ray actor in simulation, the warm
+worker on a SuperNode). Where a process serves only one message (a SuperNode's
+``flwr-clientapp`` without the worker), what training needs to continue travels in Flower's
+``Context.state``: the data-order position always, the optimizer state when asked.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import psutil
+import torch
+from flwr.app import ConfigRecord, Context, MetricRecord, RecordDict
+from loguru import logger
+from torch.utils.data import DataLoader
+
+from zk0 import app_fingerprint
+from zk0.config import ConfigError, RunConfig, from_run_config
+from zk0.data import DatasetSplit, eval_loader, open_metadata, open_split, train_loader
+from zk0.logs import add_file_sink, setup_logging
+from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, set_trainable, trainable_tensors
+from zk0.registry import DatasetEntry, Registry, RegistryError, load_registry
+from zk0.stats import stats_to_record
+from zk0.training import LocalTrainer, evaluate
+from zk0.wire import decode, encode
+
+# What must outlive a one-message process, in the node's Context.state.
+OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
+# Timing keys every reply carries (the same keys on every client, as Flower's averaging needs).
+TIMINGS = ("startup-s", "build-s", "restore-s", "handler-s")
+
+
+@dataclass
+class ClientSession:
+    """Everything one client keeps between rounds of one run."""
+
+    run: RunConfig
+    index: int
+    bundle: PolicyBundle
+    split: DatasetSplit
+    trainer: LocalTrainer
+    eval_batches: DataLoader
+    fingerprint: str
+    party: str
+
+
+def client_index(registry: Registry, node_config: dict) -> int:
+    """The client's registry index: ``dataset`` in the node config, else the simulation partition id."""
+    if "dataset" in node_config:
+        entry = registry.get(str(node_config["dataset"]))
+        if entry not in registry.clients:
+            raise RegistryError(f"Dataset {entry.name!r} has role {entry.role!r}; a SuperNode needs a client dataset.")
+        return registry.clients.index(entry)
+    partition = int(node_config.get("partition-id", 0))
+    registry.for_partition(partition)
+    return partition
+
+
+def build_client(run: RunConfig, entry: DatasetEntry, model_cameras: list[str], index: int = 0) -> ClientSession:
+    """Open ``entry`` (client ``index``) and build its SmolVLA, split, loaders and trainer."""
+    party = f"client {index}"
+    with logger.contextualize(party=party):
+        meta = open_metadata(entry)
+        bundle = build_policy(run, meta, entry, model_cameras)
+        split = open_split(entry, meta, bundle.policy.config, run)
+        trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+        fingerprint = backbone_fingerprint(bundle)
+        logger.info(
+            "Opened {} ({} training, {} held-out episodes) and built SmolVLA ({} trainable tensors) on {}; app {}",
+            entry.name,
+            len(split.train.episodes),
+            len(split.evaluation.episodes),
+            len(bundle.trainable_names),
+            bundle.device,
+            app_fingerprint(),
+        )
+    return ClientSession(run, index, bundle, split, trainer, eval_loader(split.evaluation, run), fingerprint, party)
+
+
+def client_log(node_config: dict, run: RunConfig, run_name: str, index: int) -> Path:
+    """Where this client writes its log: under its own output folder, never at a path the server names.
+
+    A SuperNode names its folder (``zk0 supernode --output-dir``, node config ``output-dir``); a
+    simulated client shares the server's machine and uses the run's ``output-dir``, so its log
+    lands in the run folder next to the server's.
+    """
+    if not re.fullmatch(r"[\w.-]+", run_name) or run_name in {".", ".."}:
+        raise ConfigError(f"The server named the run {run_name!r}; expected a plain folder name.")
+    root = Path(str(node_config.get("output-dir", run.output_dir))).expanduser()
+    return root / run_name / "clients" / f"client_{index}" / "client.log"
+
+
+_SESSIONS: dict[tuple[int, int], ClientSession] = {}
+_FRESH_PROCESS = True  # the first message a process handles also paid for the process's start
+
+
+def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, float]:
+    """This run's session for this node, built on first use (and the seconds that took)."""
+    key = (context.run_id, context.node_id)
+    if key in _SESSIONS:
+        return _SESSIONS[key], 0.0
+    release_sessions(keep_run=context.run_id)
+    started = time.perf_counter()
+    setup_logging("client")
+    run = from_run_config(dict(context.run_config))
+    registry = load_registry(run.registry)
+    index = client_index(registry, dict(context.node_config))
+    add_file_sink(client_log(dict(context.node_config), run, str(config["run-name"]), index), f"client {index}")
+    _SESSIONS[key] = build_client(run, registry.clients[index], registry.model_cameras(), index)
+    return _SESSIONS[key], time.perf_counter() - started
+
+
+def release_sessions(keep_run: int | None = None) -> None:
+    """Drop the sessions of other runs (their policy, optimizer and GPU memory)."""
+    for stale in [k for k in _SESSIONS if k[0] != keep_run]:
+        del _SESSIONS[stale]
+    if torch.cuda.is_available():
+        torch.cuda.empty_cache()
+
+
+def _check_server(session: ClientSession, config: ConfigRecord) -> None:
+    """Refuse a server whose app code or frozen backbone differs from this client's (one sentence each)."""
+    name = f"Client {session.index} ({session.split.entry.name})"
+    if str(config["app-fingerprint"]) != app_fingerprint():
+        raise PolicyError(
+            f"{name} runs zk0 {app_fingerprint()}, the server runs zk0 {config['app-fingerprint']}; "
+            "every party must run the submitted app's code."
+        )
+    if config["backbone-fingerprint"] != session.fingerprint:
+        raise PolicyError(
+            f"{name} has backbone fingerprint {session.fingerprint}, the server has "
+            f"{config['backbone-fingerprint']}; every party must start from the same base model and seed."
+        )
+
+
+def _catch_up(session: ClientSession, context: Context) -> float:
+    """Continue from the node's latest training state when another process trained it since.
+
+    A SuperNode may run a message in a new process, and Ray may give a simulated node to another
+    actor for a round; either way the node's ``Context.state`` holds where training stopped.
+    Returns the seconds it took.
+    """
+    if PROGRESS not in context.state:
+        return 0.0
+    seen = int(context.state[PROGRESS]["batches-seen"])
+    if seen == session.trainer.batches_seen:
+        return 0.0
+    started = time.perf_counter()
+    optimizer = context.state.array_records.get(OPTIMIZER)
+    if optimizer is None:
+        logger.warning("Continuing at batch {} without the optimizer's moments (they were not kept).", seen)
+    session.trainer.restore(seen, optimizer)
+    return time.perf_counter() - started
+
+
+def _train(session: ClientSession, content: RecordDict, context: Context, keep_optimizer: bool) -> RecordDict:
+    """Evaluate the received model first when the server asks (it is the previous round's), then train."""
+    config = content["config"]
+    server_round = int(config["server-round"])
+    run = session.run
+    evaluation = _evaluate(session, content)["metrics"] if int(config.get("evaluate-round", 0)) else None
+    metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), (server_round - 1) * run.local_steps)
+    logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
+    if keep_optimizer:
+        context.state[OPTIMIZER] = session.trainer.optimizer_record()
+    context.state[PROGRESS] = ConfigRecord({"batches-seen": session.trainer.batches_seen})
+    update = encode(trainable_tensors(session.bundle), run.wire_dtype)
+    reply = RecordDict(
+        {
+            "arrays": update,
+            "metrics": MetricRecord(
+                {
+                    **metrics,
+                    "update-bytes": update.count_bytes(),
+                    "evaluate-s": evaluation["eval-s"] if evaluation else 0.0,
+                    "dataset-index": session.index,
+                }
+            ),
+            "stats": stats_to_record(session.bundle.stats),
+        }
+    )
+    if evaluation:
+        reply["evaluation"] = ConfigRecord(dict(evaluation))  # one MetricRecord per reply, as Flower requires
+    return reply
+
+
+def _evaluate(session: ClientSession, content: RecordDict) -> RecordDict:
+    run = session.run
+    metrics = evaluate(session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed)
+    evaluated = int(content["config"].get("evaluate-round", content["config"]["server-round"]))
+    logger.info("Round {} evaluate on {}: {}", evaluated, session.split.entry.name, metrics)
+    return RecordDict({"metrics": MetricRecord({**metrics, "dataset-index": session.index})})
+
+
+def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: bool = True) -> RecordDict:
+    """Answer one ``train`` or ``evaluate`` message for this node; ``context.state`` is updated in place.
+
+    ``keep_optimizer`` puts the optimizer's state in ``Context.state`` (a one-message process
+    needs it there; a warm worker keeps it in memory instead of copying ~800 MB a round).
+    """
+    global _FRESH_PROCESS
+    started = time.perf_counter()
+    startup = time.time() - psutil.Process().create_time() if _FRESH_PROCESS else 0.0
+    _FRESH_PROCESS = False
+    session, build = session_for(context, content["config"])
+    with logger.contextualize(party=session.party):
+        _check_server(session, content["config"])
+        set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
+        restore = _catch_up(session, context) if kind == "train" else 0.0
+        reply = _train(session, content, context, keep_optimizer) if kind == "train" else _evaluate(session, content)
+    timings = dict(zip(TIMINGS, (startup, build, restore, time.perf_counter() - started), strict=True))
+    next(iter(reply.metric_records.values())).update(timings)
+    return reply
