@@ -6,14 +6,21 @@ of robot owners needs: replies whose arrays are non-finite or do not match the g
 model's names/shapes/dtypes are rejected and logged, not averaged; federated evaluation
 runs every ``eval-frequency`` rounds; and each client's own metrics and dataset
 statistics are handed to a recorder so the server can write them out.
+
+Federated evaluation rides on the next round's train message: the model a client receives
+for round N+1 is the one round N produced, so it evaluates that first and reports it as round
+N's evaluation. On a SuperNode every message costs a process start and two polls of Flower's
+(seconds each), so one message per client and round instead of two halves that cost. Only the
+last round's model, which no train message follows, gets an evaluate message of its own.
 """
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable, Iterable
 
 import numpy as np
-from flwr.app import ArrayRecord, ConfigRecord, Message, MetricRecord
+from flwr.app import ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
 from flwr.serverapp import Grid
 from flwr.serverapp.strategy import FedProx
 from loguru import logger
@@ -21,8 +28,9 @@ from loguru import logger
 from zk0.errors import Zk0Error
 from zk0.wire import decode, encode
 
-# (phase, round, the replies that counted, their weighted aggregate)
-ClientRecorder = Callable[[str, int, list[Message], MetricRecord | None], None]
+# (phase, round, the reply contents that counted, their weighted aggregate)
+ClientRecorder = Callable[[str, int, list[RecordDict], MetricRecord | None], None]
+EVALUATION = "evaluation"  # the ConfigRecord of a train reply that holds the previous round's evaluation
 
 
 def array_signature(arrays: ArrayRecord) -> dict[str, tuple[tuple[int, ...], str]]:
@@ -54,6 +62,7 @@ class ValidatingFedProx(FedProx):
         expected: dict[str, tuple[tuple[int, ...], str]],
         evaluates_in: Callable[[int], bool],
         recorder: ClientRecorder,
+        last_round: int,
         round_offset: int = 0,
         wire_dtype: str = "float32",
         **kwargs,
@@ -63,6 +72,7 @@ class ValidatingFedProx(FedProx):
         self.wire_dtype = wire_dtype  # the global model is kept in fp32; messages carry this dtype
         self.evaluates_in = evaluates_in
         self.recorder = recorder
+        self.last_round = last_round  # of the whole run, resumed rounds included
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
@@ -70,10 +80,21 @@ class ValidatingFedProx(FedProx):
     def configure_train(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
+        server_round += self.round_offset
         wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
-        messages = list(super().configure_train(server_round + self.round_offset, wire, config, grid))
+        messages = list(super().configure_train(server_round, wire, config, grid))
         self.sampled = {msg.metadata.dst_node_id for msg in messages}
+        previous = server_round - 1
+        if previous > self.round_offset and self.evaluates_in(previous):
+            self._evaluate_first(messages, previous)
         return messages
+
+    def _evaluate_first(self, messages: list[Message], previous: int) -> None:
+        """Ask a ``fraction-evaluate`` sample of the training clients to evaluate round ``previous`` first."""
+        count = min(len(messages), max(self.min_evaluate_nodes, int(len(messages) * self.fraction_evaluate)))
+        for msg in random.sample(messages, count) if self.fraction_evaluate > 0 else []:
+            config = ConfigRecord({**msg.content[self.configrecord_key], "evaluate-round": previous})
+            msg.content = RecordDict({**msg.content, self.configrecord_key: config})
 
     def _log_missing(self, server_round: int, valid: list[Message]) -> None:
         """Name every sampled node whose update did not arrive (crashed, offline, rejected)."""
@@ -118,6 +139,7 @@ class ValidatingFedProx(FedProx):
         server_round += self.round_offset
         valid = self.valid_updates(server_round, list(replies))
         self._log_missing(server_round, valid)
+        self._record_evaluation(server_round - 1, valid)
         if len(valid) < self.min_train_nodes:
             logger.warning(
                 "Round {}: {} valid updates, fewer than min-train-clients={}; the global model is kept.",
@@ -125,18 +147,32 @@ class ValidatingFedProx(FedProx):
                 len(valid),
                 self.min_train_nodes,
             )
-            self.recorder("train", server_round, valid, None)
+            self.recorder("train", server_round, [m.content for m in valid], None)
             return None, None
         arrays, metrics = super().aggregate_train(server_round, valid)
-        self.recorder("train", server_round, valid, metrics)
+        self.recorder("train", server_round, [m.content for m in valid], metrics)
         return arrays, metrics
+
+    def _record_evaluation(self, evaluated_round: int, replies: list[Message]) -> None:
+        """The evaluations that train replies carry: the clients' metrics for ``evaluated_round``."""
+        contents = [
+            RecordDict({"metrics": MetricRecord(dict(msg.content[EVALUATION]))})
+            for msg in replies
+            if EVALUATION in msg.content
+        ]
+        if contents:
+            aggregate = self.evaluate_metrics_aggr_fn(contents, self.weighted_by_key)
+            logger.info(
+                "Round {} client evaluation (sent with round {}): {}", evaluated_round, evaluated_round + 1, aggregate
+            )
+            self.recorder("evaluate", evaluated_round, contents, aggregate)
 
     def configure_evaluate(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
         server_round += self.round_offset
-        if not self.evaluates_in(server_round):
-            return []
+        if server_round != self.last_round:
+            return []  # evaluated first thing in the next round's train message
         return super().configure_evaluate(
             server_round, encode(arrays.to_torch_state_dict(), self.wire_dtype), config, grid
         )
@@ -147,5 +183,5 @@ class ValidatingFedProx(FedProx):
         if not replies:
             return None
         metrics = super().aggregate_evaluate(server_round, replies)
-        self.recorder("evaluate", server_round, [m for m in replies if not m.has_error()], metrics)
+        self.recorder("evaluate", server_round, [m.content for m in replies if not m.has_error()], metrics)
         return metrics

@@ -67,12 +67,14 @@ class History:
     run_dir: Path
     client_names: dict[int, str]
     rounds: dict[int, dict] = field(default_factory=dict)
+    _late: set[int] = field(default_factory=set)  # earlier rounds whose client evaluation came since
 
     def round(self, server_round: int) -> dict:
         return self.rounds.setdefault(server_round, {"round": server_round, "clients": {}})
 
     def add_client(self, server_round: int, phase: str, index: int, metrics: dict) -> None:
         clients = self.round(server_round)["clients"]
+        self._late.add(server_round)
         clients.setdefault(str(index), {"dataset": self.client_names.get(index, "?")})[phase] = metrics
 
     def add(self, server_round: int, key: str, value: dict | float | None) -> None:
@@ -81,11 +83,14 @@ class History:
             self.round(server_round)[key] = value
 
     def write_round(self, server_round: int) -> None:
-        """``round_<N>.json`` for the server and each client, the history, and both charts."""
-        record = self.round(server_round)
-        write_json(self.run_dir / "server" / f"round_{server_round}.json", record)
-        for index, metrics in record["clients"].items():
-            write_json(client_dir(self.run_dir, int(index)) / f"round_{server_round}.json", metrics)
+        """``round_<N>.json`` for the server and each client (again for an earlier round whose client
+        evaluation arrived with this round's training), the history, and both charts."""
+        for number in sorted(self._late | {server_round}):
+            record = self.round(number)
+            write_json(self.run_dir / "server" / f"round_{number}.json", record)
+            for index, metrics in record["clients"].items():
+                write_json(client_dir(self.run_dir, int(index)) / f"round_{number}.json", metrics)
+        self._late.clear()
         history = {"clients": self.participants(), "rounds": [self.rounds[r] for r in sorted(self.rounds)]}
         write_json(self.run_dir / "server" / "metrics_history.json", history)
         for metric, filename in CHARTS.items():

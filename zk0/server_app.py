@@ -13,17 +13,19 @@ import json
 import time
 from pathlib import Path
 
-from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MetricRecord
+from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord, RecordDict
 from flwr.serverapp import Grid, ServerApp
 from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
+from zk0 import app_fingerprint
 from zk0.aggregation import ValidatingFedProx, array_signature
 from zk0.artifacts import History, new_run_dir, save_checkpoint, write_json
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_evaluation, open_metadata
 from zk0.errors import Zk0Error
+from zk0.grid import PromptGrid
 from zk0.hub import can_push, publish
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
@@ -58,18 +60,18 @@ class RoundEnd:
         self.started = time.perf_counter()
 
     def record_clients(
-        self, phase: str, server_round: int, replies: list[Message], aggregate: MetricRecord | None
+        self, phase: str, server_round: int, replies: list[RecordDict], aggregate: MetricRecord | None
     ) -> None:
         """Keep each client's metrics (by dataset index, never node id), their aggregate and dataset statistics."""
         if aggregate:
             summary = {k: v for k, v in aggregate.items() if k != "dataset-index"}
             self.history.add(server_round, f"aggregate-{phase}", summary)
-        for msg in replies:
-            metrics = dict(msg.content["metrics"])
+        for content in replies:
+            metrics = dict(content["metrics"])
             index = int(metrics.pop("dataset-index"))
             self.history.add_client(server_round, phase, index, metrics)
-            if "stats" in msg.content:
-                self.client_stats[index] = stats_from_record(msg.content["stats"])
+            if "stats" in content:
+                self.client_stats[index] = stats_from_record(content["stats"])
 
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
         if server_round == 0 and self.round_offset:
@@ -147,7 +149,12 @@ def main(grid: Grid, context: Context) -> None:
     bundle = build_policy(run, meta, entry, registry.model_cameras())
     initial = resumed.trainable(bundle) if resumed else get_trainable(bundle)
     fingerprint = backbone_fingerprint(bundle)
-    logger.info("Global model: {} trainable tensors, backbone fingerprint {}", len(initial), fingerprint)
+    logger.info(
+        "Global model: {} trainable tensors, backbone fingerprint {}; app {}",
+        len(initial),
+        fingerprint,
+        app_fingerprint(),
+    )
 
     history = History(
         run_dir, {i: e.name for i, e in enumerate(registry.clients)}, dict(resumed.rounds) if resumed else {}
@@ -159,6 +166,7 @@ def main(grid: Grid, context: Context) -> None:
         expected=array_signature(initial),
         evaluates_in=run.evaluates_in,
         recorder=round_end.record_clients,
+        last_round=run.num_server_rounds,
         proximal_mu=run.proximal_mu,
         fraction_train=run.fraction_train,
         fraction_evaluate=run.fraction_evaluate,
@@ -168,9 +176,11 @@ def main(grid: Grid, context: Context) -> None:
         round_offset=done,
         wire_dtype=run.wire_dtype,
     )
-    shared = {"backbone-fingerprint": fingerprint, "run-dir": str(run_dir)}
+    # The run's folder name (clients keep their logs under a folder of that name on their own
+    # machine, never at a path of the server's) and what both ends must share.
+    shared = {"backbone-fingerprint": fingerprint, "app-fingerprint": app_fingerprint(), "run-name": run_dir.name}
     strategy.start(
-        grid=grid,
+        grid=PromptGrid(grid),
         initial_arrays=initial,
         num_rounds=run.num_server_rounds - done,
         train_config=ConfigRecord(dict(shared)),
