@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from zk0.bench import exchange, learning, memory, round, step
+from zk0.bench import deployment, exchange, learning, memory, round, step
 
 BENCHMARKS = {
     "learning": learning.main,
@@ -12,6 +12,7 @@ BENCHMARKS = {
     "step": step.main,
     "round": round.main,
     "memory": memory.main,
+    "deployment": deployment.main,
 }
 
 

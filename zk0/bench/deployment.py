@@ -1,0 +1,186 @@
+"""Deployment benchmark: the same federation on a loopback Deployment Engine and in simulation.
+
+The Deployment Engine run is what robot owners run: a TLS SuperLink with SuperNode
+authentication and one ``zk0 supernode`` per client, each in its own folder (``zk0.loopback``).
+The simulation run is ``flwr run`` on a local simulation SuperLink (Ray). They run one after
+the other, ``--repeats`` times, interleaved. Printed: the wall time of every round of both,
+their ratio over the steady rounds (round 1 also builds every client), and for the deployment
+where a client's message time goes, from the timings every reply carries: the ClientApp
+process's start and imports, the client build, restoring training state, the local steps or the
+evaluation, and handing the message to the warm worker and back. The fixed cost per client and
+round is everything that is not local steps or evaluation.
+
+    python -m zk0.bench deployment [--model full-size] [--rounds 3] [--local-steps 30] [--clients 2]
+        [--batch-size 8] [--cpus-per-node N] [--no-simulation] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+from zk0.bench.client import write_json
+from zk0.loopback import loopback_federation
+from zk0.registry import load_registry
+from zk0.simulation import run_federation
+
+
+def run_config(args: argparse.Namespace) -> str:
+    return (
+        f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
+        f"eval-batches={args.eval_batches} model='{args.model}' min-train-clients={args.clients} "
+        f"checkpoint-interval={args.rounds} num-workers={args.num_workers}"
+    )
+
+
+def deployment_history(args: argparse.Namespace, root: Path) -> dict | None:
+    """One run on a loopback Deployment Engine; its metric history, or None (with the log) on failure."""
+    datasets = [entry.name for entry in load_registry().clients[: args.clients]]
+    supernodes = {f"robot-{i}": name for i, name in enumerate(datasets)}
+    out = root / "server-outputs"
+    with loopback_federation(root, supernodes, cpus=args.cpus_per_node) as fed:
+        done = fed.run_app(f"{run_config(args)} output-dir='{out}'")
+    runs = sorted(out.glob("*/server/metrics_history.json"))
+    if not runs or "Exit Code: " in done.stdout:
+        print(done.stdout[-4000:] + done.stderr[-2000:], file=sys.stderr)
+        print("bench.deployment: the deployment run did not finish; its log is above.", file=sys.stderr)
+        return None
+    return json.loads(runs[-1].read_text())
+
+
+def round_walls(history: dict) -> list[float]:
+    walls = {r["round"]: r["wall-s"] for r in history["rounds"]}
+    return [walls[r] - walls[r - 1] for r in range(1, max(walls) + 1)]
+
+
+def message_breakdown(history: dict, steps: int) -> dict[str, dict[str, float]]:
+    """Mean seconds per client message of the steady rounds, by where they went."""
+    parts: dict[str, dict[str, list[float]]] = {"train": {}, "evaluate": {}}
+    for record in history["rounds"][2:]:  # round 0 is the server's, round 1 builds
+        for client in record.get("clients", {}).values():
+            for phase in ("train", "evaluate"):
+                if "handler-s" not in client.get(phase, {}):
+                    continue  # an evaluation that came inside a train message has no message of its own
+                m = client[phase]
+                steps_s = m["step-time"] * steps if phase == "train" else 0.0
+                eval_s = m["evaluate-s"] if phase == "train" else m["eval-s"]
+                work = steps_s + eval_s
+                worker_rest = m["worker-s"] - m["build-s"] - m["restore-s"] - work if m["worker-s"] else 0.0
+                own = m["handler-s"] - (m["worker-s"] or m["handler-s"])
+                for name, value in {
+                    "process start + imports": m["startup-s"],
+                    "client build": m["build-s"],
+                    "state restore": m["restore-s"],
+                    "local steps": steps_s,
+                    "evaluation": eval_s,
+                    "to the worker and back": own,
+                    "weights in/out, metrics": worker_rest,
+                }.items():
+                    parts[phase].setdefault(name, []).append(value)
+    return {phase: {k: statistics.mean(v) for k, v in p.items()} for phase, p in parts.items() if p}
+
+
+def fixed_cost(history: dict, steps: int) -> float:
+    """Mean seconds per steady round beyond the slowest client's local steps and the evaluations."""
+    walls = round_walls(history)
+    costs = []
+    for record in history["rounds"][2:]:
+        clients = [c for c in record["clients"].values() if "train" in c]
+        if not clients:
+            raise RuntimeError(f"No client trained in round {record['round']}; see the clients' logs.")
+        work = max(c["train"]["step-time"] * steps + c["train"]["evaluate-s"] for c in clients)
+        work += max((c["evaluate"]["eval-s"] for c in clients if "evaluate" in c), default=0.0)
+        work += record.get("server-evaluate", {}).get("eval-s", 0.0)
+        costs.append(walls[record["round"] - 1] - work)
+    return statistics.mean(costs)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", default="tiny", help="tiny, full-size, or a SmolVLA checkpoint")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--local-steps", type=int, default=30)
+    parser.add_argument("--clients", type=int, default=2)
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--eval-batches", type=int, default=1)
+    parser.add_argument("--num-workers", type=int, default=0, help="DataLoader workers per client")
+    parser.add_argument(
+        "--cpus-per-node", type=int, help="zk0 supernode --cpus (default: the machine's CPUs / clients)"
+    )
+    parser.add_argument("--repeats", type=int, default=1, help="simulation/deployment pairs, interleaved")
+    parser.add_argument("--no-simulation", action="store_true", help="deployment only (no Ray on this machine)")
+    parser.add_argument("--keep", action="store_true", help="keep the runs' folders (printed) for their logs")
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+    if args.rounds < 2:
+        parser.error("--rounds must be at least 2: round 1 builds every client, the steady state starts at 2.")
+    if args.cpus_per_node is None:
+        import os
+
+        args.cpus_per_node = max(1, len(os.sched_getaffinity(0)) // args.clients)
+
+    runs: dict[str, list[dict]] = {"simulation": [], "deployment": []}
+    with tempfile.TemporaryDirectory(prefix="zk0-bench-deployment-", delete=not args.keep) as tmp:
+        for repeat in range(args.repeats):
+            if not args.no_simulation:
+                out = Path(tmp) / f"simulation-{repeat}"
+                history = run_federation(run_config(args), args.clients, out, "bench.deployment")
+                if history is None:
+                    return 1
+                runs["simulation"].append(history)
+            history = deployment_history(args, Path(tmp) / f"deployment-{repeat}")
+            if history is None:
+                return 1
+            runs["deployment"].append(history)
+        if args.keep:
+            print(f"runs kept in {tmp}")
+
+    figures: dict = {"settings": vars(args)}
+    for mode, histories in runs.items():
+        if not histories:
+            continue
+        walls = [round_walls(h) for h in histories]
+        figures[mode] = {
+            "round-wall-s": walls,
+            "steady-round-s": statistics.mean(w for ws in walls for w in ws[1:]),
+            "fixed-cost-per-round-s": statistics.mean(fixed_cost(h, args.local_steps) for h in histories),
+            "local-steps-s": statistics.mean(
+                c["train"]["step-time"] * args.local_steps
+                for h in histories
+                for r in h["rounds"][2:]
+                for c in r["clients"].values()
+            ),
+        }
+    figures["deployment"]["messages"] = message_breakdown(runs["deployment"][-1], args.local_steps)
+
+    print(
+        f"model {args.model}, {args.clients} clients, {args.rounds} rounds x {args.local_steps} steps, "
+        f"batch {args.batch_size}, {args.cpus_per_node} CPU(s) per SuperNode"
+    )
+    for mode in ("simulation", "deployment"):
+        if mode in figures:
+            f = figures[mode]
+            walls = " ".join(f"{w:.2f}" for w in f["round-wall-s"][-1])
+            print(
+                f"{mode:>10}: rounds {walls} s; steady {f['steady-round-s']:.2f} s/round, of which local steps "
+                f"{f['local-steps-s']:.2f} s and fixed cost {f['fixed-cost-per-round-s']:.2f} s"
+            )
+    if "simulation" in figures:
+        figures["ratio"] = figures["deployment"]["steady-round-s"] / figures["simulation"]["steady-round-s"]
+        print(f"deployment / simulation, steady rounds: {figures['ratio']:.2f}x")
+    d = figures["deployment"]
+    print(f"deployment overhead: {100 * d['fixed-cost-per-round-s'] / d['steady-round-s']:.1f}% of a steady round")
+    for phase, parts in d["messages"].items():
+        print(f"  {phase} message (mean per client, steady rounds):")
+        for name, seconds in parts.items():
+            print(f"    {name:<26} {seconds:8.3f} s")
+    write_json(args.json, figures)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

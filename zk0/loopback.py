@@ -1,0 +1,132 @@
+"""A Deployment Engine federation on this machine, as robot owners run it across machines.
+
+One TLS SuperLink with SuperNode authentication and one ``zk0 supernode`` per robot owner,
+each started by the same ``zk0`` operator commands the docs show, each SuperNode in its own
+working folder with its own output folder (nothing shared but the CA certificate and the
+SuperLink's address), and ``flwr run`` against it. The deployment test and
+``python -m zk0.bench deployment`` use it, so what they measure is what users run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from zk0.certs import make_federation_certs
+from zk0.registry import PROJECT_ROOT
+from zk0.simulation import free_port
+
+BIN = Path(sys.executable).parent
+CONNECTION = "lan"
+
+
+def tool(name: str) -> str:
+    """A command of this environment (beside its Python, else on PATH): zk0, flwr."""
+    found = shutil.which(name, path=f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}")
+    if found is None:
+        raise RuntimeError(f"The command {name!r} is not installed beside {sys.executable} or on PATH.")
+    return found
+
+
+@dataclass
+class LoopbackFederation:
+    """Operator commands against one SuperLink; each process logs to ``<root>/<name>.log``."""
+
+    root: Path
+    env: dict
+    address: str
+    processes: dict[str, subprocess.Popen] = field(default_factory=dict)
+
+    def start(self, name: str, *args: str, cwd: Path | None = None) -> subprocess.Popen:
+        """A ``zk0`` command in its own process group (its Flower process and what that starts)."""
+        log = (self.root / f"{name}.log").open("w")
+        proc = subprocess.Popen(
+            [tool("zk0"), *args], env=self.env, cwd=cwd or self.root, stdout=log, stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )  # fmt: skip
+        self.processes[name] = proc
+        return proc
+
+    def supernode(self, name: str, dataset: str, *extra: str) -> subprocess.Popen:
+        """A robot owner's SuperNode, working in ``<root>/<name>/`` with its outputs in ``outputs/`` there."""
+        home = self.root / name
+        home.mkdir(exist_ok=True)
+        return self.start(
+            name, "supernode", "--superlink", self.address, "--certs", str(self.root / "certs"),
+            "--dataset", dataset, "--runtime-port", str(free_port()), "--output-dir", "outputs", *extra,
+            cwd=home,
+        )  # fmt: skip
+
+    def register(self, *keys: str) -> None:
+        for key in keys:
+            done = self.flwr("supernode", "register", str(self.root / "certs" / "supernodes" / f"{key}.pub"))
+            if done.returncode != 0:
+                raise RuntimeError(f"Registering SuperNode key {key} failed: {done.stdout}{done.stderr}")
+
+    def flwr(self, *args: str, timeout: float = 900) -> subprocess.CompletedProcess:
+        """``flwr <command> ... lan`` (the connection name is appended where Flower expects it)."""
+        command = [*args, CONNECTION] if args[0] == "supernode" else list(args)
+        return subprocess.run(
+            [tool("flwr"), *command], env=self.env, cwd=PROJECT_ROOT, capture_output=True, text=True,
+            timeout=timeout, check=False,
+        )  # fmt: skip
+
+    def run_app(self, run_config: str, app: Path = PROJECT_ROOT, timeout: float = 1800) -> subprocess.CompletedProcess:
+        """``flwr run <app> lan --stream`` with ``run_config``; returns when the run ends."""
+        return self.flwr("run", str(app), CONNECTION, "--stream", "--run-config", run_config, timeout=timeout)
+
+    def log(self, name: str) -> str:
+        return (self.root / f"{name}.log").read_text()
+
+    def stop(self, name: str, sig: int = signal.SIGTERM) -> None:
+        """Signal a process group; SIGKILL what lingers after 20 s."""
+        proc = self.processes[name]
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=20)
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+
+    def stop_all(self) -> None:
+        for name in reversed(list(self.processes)):
+            self.stop(name)
+
+
+@contextlib.contextmanager
+def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None = None):
+    """A running TLS federation under ``root``: ``supernodes`` maps key names to datasets.
+
+    Also creates a key pair named ``stranger`` that is never registered. Stops everything on exit.
+    """
+    make_federation_certs(root / "certs", [], [*supernodes, "stranger"])
+    port = free_port()
+    home = root / "flwr-home"
+    home.mkdir(parents=True, exist_ok=True)
+    (home / "config.toml").write_text(
+        f'[superlink]\ndefault = "{CONNECTION}"\n\n[superlink.{CONNECTION}]\naddress = "127.0.0.1:{port}"\n'
+        f'root-certificates = "{root / "certs" / "ca.crt"}"\n'
+    )
+    env = {**os.environ, "FLWR_HOME": str(home), "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
+    env.pop("HF_TOKEN", None)
+    fed = LoopbackFederation(root, env, f"127.0.0.1:{port}")
+    fed.start("superlink", "superlink", "--certs", "certs", "--address", fed.address)
+    try:
+        deadline = time.monotonic() + 120
+        while fed.flwr("supernode", "list").returncode != 0:
+            if time.monotonic() > deadline or fed.processes["superlink"].poll() is not None:
+                raise RuntimeError(f"The SuperLink did not start: {fed.log('superlink')[-2000:]}")
+            time.sleep(1)
+        fed.register(*supernodes)
+        for key, dataset in supernodes.items():
+            fed.supernode(key, dataset, "--key", key, *(["--cpus", str(cpus)] if cpus else []))
+        yield fed
+    finally:
+        fed.stop_all()
