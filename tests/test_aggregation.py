@@ -44,6 +44,7 @@ def strategy():
         expected=array_signature(arrays(0.0)),
         evaluates_in=lambda rnd: rnd % 2 == 0,
         recorder=lambda phase, rnd, replies, agg: recorded.append((phase, rnd, len(replies), agg)),
+        last_round=4,
         proximal_mu=0.01,
         min_train_nodes=2,
     )
@@ -82,9 +83,32 @@ def test_too_few_valid_updates_keep_the_global_model(strategy):
     assert strategy.recorded == [("train", 1, 1, None)]
 
 
-def test_federated_evaluation_follows_the_schedule(strategy):
-    class NoNodes:
-        def get_node_ids(self):
-            return []
+class TwoNodes:
+    """The part of Flower's Grid that sampling reads."""
 
-    assert list(strategy.configure_evaluate(1, arrays(0.0), ConfigRecord({}), NoNodes())) == []
+    def get_node_ids(self):
+        return [1, 2]
+
+
+def test_client_evaluation_rides_on_the_next_train_message_and_only_the_last_round_has_its_own(strategy):
+    def evaluate_round(server_round: int) -> list:
+        messages = strategy.configure_train(server_round, arrays(0.0), ConfigRecord({}), TwoNodes())
+        return [msg.content["config"].get("evaluate-round") for msg in messages]
+
+    assert evaluate_round(1) == [None, None], "nothing came before round 1"
+    assert evaluate_round(2) == [None, None], "round 1 is not on the eval schedule"
+    assert evaluate_round(3) == [2, 2], "round 3's train messages evaluate round 2's model first"
+    assert list(strategy.configure_evaluate(2, arrays(0.0), ConfigRecord({}), TwoNodes())) == []
+    last = list(strategy.configure_evaluate(4, arrays(0.0), ConfigRecord({}), TwoNodes()))
+    assert [msg.metadata.message_type for msg in last] == [MessageType.EVALUATE] * 2
+
+
+def test_evaluations_carried_by_train_replies_are_recorded_for_the_round_they_evaluate(strategy):
+    replies = [reply(1, arrays(1.0), 10), reply(2, arrays(3.0), 30)]
+    for msg, mse in zip(replies, (1.0, 5.0), strict=True):
+        msg.content["evaluation"] = ConfigRecord({"action-mse": mse, "num-examples": 4 * mse, "dataset-index": 0})
+    strategy.aggregate_train(3, replies)
+    phase, evaluated, count, aggregate = strategy.recorded[0]
+    assert (phase, evaluated, count) == ("evaluate", 2, 2)
+    assert aggregate["action-mse"] == pytest.approx((1.0 * 4 + 5.0 * 20) / 24), "weighted by examples evaluated"
+    assert strategy.recorded[1][:3] == ("train", 3, 2)

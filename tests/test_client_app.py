@@ -34,3 +34,38 @@ def test_wandb_without_a_key_is_one_warning_not_a_failure(tmp_path, monkeypatch)
         logger.remove(sink)
     assert tracker.wandb_run is None
     assert len(messages) == 1 and "WANDB_API_KEY" in messages[0]
+
+
+def test_a_client_refuses_a_server_running_other_code_and_logs_in_its_own_folder(tmp_path):
+    from flwr.app import ArrayRecord, ConfigRecord, Context, RecordDict
+
+    from zk0 import app_fingerprint
+    from zk0.client import handle
+    from zk0.policy import PolicyError
+
+    node_config = {"dataset": "synth-so100-stacking", "output-dir": str(tmp_path / "owner")}
+    context = Context(run_id=1, node_id=7, node_config=node_config, state=RecordDict(), run_config={"batch-size": 2})
+    config = {"app-fingerprint": "0.0.9+0123456789ab", "backbone-fingerprint": "?", "run-name": "2026-01-01_00-00-00"}
+    content = RecordDict(
+        {"config": ConfigRecord({**config, "server-round": 1, "proximal-mu": 0.0}), "arrays": ArrayRecord()}
+    )
+    with pytest.raises(PolicyError) as refused:
+        handle("train", content, context)
+    assert str(refused.value) == (
+        f"Client 1 (synth-so100-stacking) runs zk0 {app_fingerprint()}, the server runs zk0 0.0.9+0123456789ab; "
+        "every party must run the submitted app's code."
+    )
+    log = tmp_path / "owner" / "2026-01-01_00-00-00" / "clients" / "client_1" / "client.log"
+    assert "Opened synth-so100-stacking" in log.read_text()
+
+
+def test_a_run_name_that_is_a_path_is_refused():
+    from zk0.client import client_log
+    from zk0.config import ConfigError
+
+    assert client_log({"output-dir": "/data/zk0"}, RunConfig(), "run-1", 2).as_posix() == (
+        "/data/zk0/run-1/clients/client_2/client.log"
+    )
+    for name in ("../../etc", "/tmp/x", ".."):
+        with pytest.raises(ConfigError, match="expected a plain folder name"):
+            client_log({}, RunConfig(), name, 0)

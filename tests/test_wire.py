@@ -39,6 +39,7 @@ def test_fedavg_averages_decoded_values():
         expected=array_signature(encode(template, "float32")),
         evaluates_in=lambda _: True,
         recorder=lambda *_: None,
+        last_round=1,
         wire_dtype="bfloat16",
         min_train_nodes=2,
     )

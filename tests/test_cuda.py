@@ -1,0 +1,41 @@
+"""CUDA-only branches: run where CUDA is present, reported as skipped (with the reason) elsewhere.
+
+The first run of zk0 on a GPU found a failure no CPU test could: on CUDA, lerobot's
+``update_policy`` writes ``gpu_mem_gb`` to the metrics tracker. These tests take real steps and
+evaluations on the GPU with the tiny model, so such a branch cannot break unnoticed where a GPU
+is available.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA (no GPU on this machine)")
+
+
+@pytest.fixture(scope="module")
+def cuda_client(registry):
+    from zk0.client import build_client
+    from zk0.config import RunConfig
+
+    run = RunConfig(device="cuda:0", batch_size=4, local_steps=3, num_server_rounds=1)
+    return build_client(run, registry.clients[0], registry.model_cameras())
+
+
+def test_a_client_trains_on_cuda_with_bf16_and_reports_its_peak_memory(cuda_client):
+    assert cuda_client.bundle.device == torch.device("cuda:0")
+    assert cuda_client.trainer.accelerator.mixed_precision == ("bf16" if torch.cuda.is_bf16_supported() else "no")
+    assert cuda_client.trainer.loader.pin_memory
+    metrics = cuda_client.trainer.fit(3, mu=0.01, global_step=0)
+    assert metrics["num-examples"] == 12 and metrics["skipped-batches"] == 0
+    assert metrics["peak-gpu-gib"] > 0
+    assert all(p.device.type == "cuda" for p in cuda_client.bundle.policy.parameters())
+
+
+def test_evaluation_on_cuda_is_seeded(cuda_client):
+    from zk0.training import evaluate
+
+    runs = [evaluate(cuda_client.bundle, cuda_client.split, cuda_client.eval_batches, 1, seed=3) for _ in range(2)]
+    assert runs[0]["policy-loss"] == pytest.approx(runs[1]["policy-loss"], rel=1e-3)
+    assert runs[0]["action-mse"] > 0
