@@ -1,0 +1,110 @@
+"""Every command a user would copy from README.md and docs/ runs, at least as a dry run.
+
+Commands are read from the ```bash blocks (with backslash continuations joined). Each is run the
+cheapest way that still exercises it: ``zk0 certs`` for real, ``zk0 superlink``/``supernode``
+with ``--dry-run`` in a folder holding those certificates (also when the docs run them inside
+the Docker image), ``./train.sh`` with ``--print``, ``flwr run``'s run config through
+``zk0 check``, benchmarks with ``--help``. A command this test does not know fails it, so a new
+documented command cannot go unexercised.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from zk0.registry import PROJECT_ROOT
+
+DOCS = [PROJECT_ROOT / "README.md", *sorted((PROJECT_ROOT / "docs").glob("*.md"))]
+BIN = Path(sys.executable).parent
+# Exercised elsewhere, or not runnable here; each with the reason.
+ELSEWHERE = {
+    "flwr supernode": "registration and listing run in tests/test_deployment.py",
+    "docker build": "no Docker engine here; the Dockerfile is linted by tests/test_scripts.py",
+    "./test.sh": "the test command itself",
+    "source scripts/setup.sh": "what ./train.sh and ./test.sh run first",
+    "lerobot-record": "needs a robot; the checkpoint loading is tested in tests/test_production.py",
+    "cd ": "moves into the clone",
+    "git clone": "needs the network",
+    "tmux ": "attaching to a detached run",
+    "tail -f": "following a log",
+    "export ": "sets an environment variable for the commands after it",
+}
+
+
+def documented_commands() -> list[tuple[str, str]]:
+    """(file name, command) for every line of every ```bash block."""
+    found = []
+    for doc in DOCS:
+        for block in re.findall(r"```bash\n(.*?)```", doc.read_text(), re.DOTALL):
+            for line in block.replace("\\\n", " ").splitlines():
+                line = re.sub(r"\s+#.*$", "", line).strip()
+                if line and not line.startswith("#"):
+                    found.append((doc.name, line))
+    return found
+
+
+COMMANDS = documented_commands()
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory):
+    """A folder with the certificates the docs' examples name (made as docs/deployment.md makes them)."""
+    root = tmp_path_factory.mktemp("docs")
+    done = zk0("certs", "--out", "certificates", "--supernode", "robot-alice", "--supernode", "robot-bob", cwd=root)
+    assert done.returncode == 0, done.stderr
+    return root
+
+
+def zk0(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([str(BIN / "zk0"), *args], cwd=cwd, capture_output=True, text=True, timeout=120, check=False)
+
+
+def inner_command(tokens: list[str]) -> list[str]:
+    """What ``docker run ... zk0 <command>`` runs inside the image."""
+    image = next(i for i, token in enumerate(tokens) if token == "zk0" and i + 1 < len(tokens))
+    return tokens[image + 1 :]
+
+
+def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
+    if tokens[0] == "docker":
+        return exercise(inner_command(tokens), workspace)
+    if tokens[:2] == ["zk0", "certs"]:
+        return zk0(*tokens[1:], cwd=workspace)
+    if tokens[0] == "zk0" and tokens[1] in {"superlink", "supernode"}:
+        return zk0(*tokens[1:], "--dry-run", cwd=workspace)
+    if tokens[0] == "zk0":
+        return zk0(*tokens[1:], cwd=workspace)
+    if tokens[0] == "./train.sh":
+        if "--resume" in tokens:  # the example run folder, as an interrupted run leaves it
+            (workspace / tokens[tokens.index("--resume") + 1]).mkdir(parents=True, exist_ok=True)
+        command = [str(PROJECT_ROOT / "train.sh"), *tokens[1:], "--print"]
+        return subprocess.run(command, cwd=workspace, capture_output=True, text=True, timeout=300, check=False)
+    if tokens[:2] == ["flwr", "run"]:
+        config = tokens[tokens.index("--run-config") + 1] if "--run-config" in tokens else ""
+        option = ["--preset", str(PROJECT_ROOT / config)] if config.endswith(".toml") else ["--run-config", config]
+        return zk0("check", *option, cwd=PROJECT_ROOT)
+    if tokens[:3] == ["python", "-m", "zk0.bench"]:
+        command = [sys.executable, "-m", "zk0.bench", tokens[3], "--help"]
+        return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
+    raise AssertionError(f"No way to exercise {shlex.join(tokens)!r}; teach tests/test_docs_commands.py one.")
+
+
+@pytest.mark.parametrize(("doc", "command"), COMMANDS, ids=[f"{d}:{c[:60]}" for d, c in COMMANDS])
+def test_documented_command_runs(doc, command, workspace):
+    if any(command.startswith(prefix) for prefix in ELSEWHERE):
+        pytest.skip(next(reason for prefix, reason in ELSEWHERE.items() if command.startswith(prefix)))
+    done = exercise(shlex.split(command), workspace)
+    assert done.returncode == 0, f"{doc}: `{command}` exited {done.returncode}: {done.stderr[-1500:]}"
+
+
+def test_the_docs_show_the_deployment_commands():
+    """The scan finds what matters (a broken regex must not turn this file into a no-op)."""
+    text = " ".join(command for _, command in COMMANDS)
+    for expected in ("zk0 certs", "zk0 superlink", "zk0 supernode", "./train.sh", "flwr run", "docker run"):
+        assert expected in text, expected
