@@ -31,7 +31,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from flwr.app import Context, RecordDict
+from flwr.app import Array, ArrayRecord, Context, RecordDict
 from flwr.common.serde import context_from_proto, context_to_proto, recorddict_from_proto, recorddict_to_proto
 from flwr.proto.message_pb2 import Context as ProtoContext
 from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
@@ -53,17 +53,43 @@ def enabled(node_config: dict) -> bool:
 
 
 def socket_path(run_id: int, node_id: int) -> Path:
-    """One socket per run and node, in a folder only this user may enter."""
+    """One socket per run and node, in a folder only this user may enter (refused otherwise)."""
     folder = Path(tempfile.gettempdir()) / f"zk0-{os.getuid()}"
     folder.mkdir(mode=0o700, exist_ok=True)
+    info = folder.lstat()
+    if info.st_uid != os.getuid() or info.st_mode & 0o077 or folder.is_symlink():
+        raise WorkerUnavailable(f"{folder} is not a private folder of this user; not starting a worker there")
     return folder / f"{run_id}-{node_id}.sock"
 
 
-# Framing: each part is an 8-byte big-endian length and its bytes.
+# Framing: each part is an 8-byte big-endian length and its bytes. A RecordDict travels as a JSON
+# header describing its arrays, a protobuf of everything else (configs, metrics: small), and each
+# array's bytes as they are: Flower's protobuf path copies 200 MB of weights four times.
 def _send(sock: socket.socket, *parts: bytes) -> None:
     for part in parts:
         sock.sendall(struct.pack("!Q", len(part)))
         sock.sendall(part)
+
+
+def _send_records(sock: socket.socket, content: RecordDict) -> None:
+    rest, arrays, payloads = RecordDict(), [], []
+    for key, record in content.items():
+        if isinstance(record, ArrayRecord):
+            arrays.append([key, [[name, a.dtype, list(a.shape), a.stype] for name, a in record.items()]])
+            payloads += [a.data for a in record.values()]
+        else:
+            rest[key] = record
+    _send(sock, json.dumps(arrays).encode(), recorddict_to_proto(rest).SerializeToString(), *payloads)
+
+
+def _recv_records(sock: socket.socket) -> RecordDict:
+    arrays = json.loads(_recv(sock))
+    content = recorddict_from_proto(ProtoRecordDict.FromString(_recv(sock)))
+    for key, described in arrays:
+        content[key] = ArrayRecord(
+            {name: Array(dtype, tuple(shape), stype, _recv(sock)) for name, dtype, shape, stype in described}
+        )
+    return content
 
 
 def _recv(sock: socket.socket) -> bytes:
@@ -89,23 +115,21 @@ def call(kind: str, content: RecordDict, context: Context) -> tuple[RecordDict, 
     Returns the reply and the seconds the worker spent on it. A ``Zk0Error`` in the worker comes
     back as the same one sentence; ``WorkerUnavailable`` means the caller should work in-process.
     """
-    path = socket_path(context.run_id, context.node_id)
+    path = socket_path(context.run_id, context.node_id)  # before the try: it raises WorkerUnavailable itself
     with _connect(path) as sock:
         try:
             header = json.dumps({"kind": kind}).encode()
-            _send(sock, header, context_to_proto(context).SerializeToString(), _proto_bytes(content))
+            _send(sock, header, context_to_proto(context).SerializeToString())
+            _send_records(sock, content)
             status = json.loads(_recv(sock))
             if not status["ok"]:
                 raise (Zk0Error if status["user-error"] else RuntimeError)(status["error"])
-            updated, reply = _recv(sock), _recv(sock)
+            updated = _recv(sock)
+            reply = _recv_records(sock)
         except (ConnectionError, OSError) as err:
             raise WorkerUnavailable(f"the warm worker at {path} stopped during the message ({err})") from err
     context.state = context_from_proto(ProtoContext.FromString(updated)).state
-    return recorddict_from_proto(ProtoRecordDict.FromString(reply)), float(status["worker-s"])
-
-
-def _proto_bytes(content: RecordDict) -> bytes:
-    return recorddict_to_proto(content).SerializeToString()
+    return reply, float(status["worker-s"])
 
 
 def _connect(path: Path) -> socket.socket:
@@ -189,7 +213,7 @@ def _answer(conn: socket.socket, client) -> bool:
     """Answer one message; True when it was the run's last one for this client."""
     header = json.loads(_recv(conn))
     context = context_from_proto(ProtoContext.FromString(_recv(conn)))
-    content = recorddict_from_proto(ProtoRecordDict.FromString(_recv(conn)))
+    content = _recv_records(conn)
     started = time.perf_counter()
     try:
         reply = client.handle(header["kind"], content, context, keep_optimizer=False)
@@ -200,7 +224,8 @@ def _answer(conn: socket.socket, client) -> bool:
         _send(conn, json.dumps({"ok": False, "user-error": user, "error": str(err)}).encode())
         return False
     status = {"ok": True, "worker-s": time.perf_counter() - started}
-    _send(conn, json.dumps(status).encode(), context_to_proto(context).SerializeToString(), _proto_bytes(reply))
+    _send(conn, json.dumps(status).encode(), context_to_proto(context).SerializeToString())
+    _send_records(conn, reply)
     return _is_last(header["kind"], content, context)
 
 

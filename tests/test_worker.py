@@ -1,0 +1,93 @@
+"""The warm worker's side of a message, without a federation: what crosses its socket, and what
+the ClientApp does when no worker can be had. (Real SuperNodes with real workers run in
+tests/test_deployment.py.)"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import socket
+import tempfile
+import threading
+
+import numpy as np
+import torch
+from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
+from flwr.supercore.task_identity import TaskIdentity
+
+from zk0 import app_fingerprint, client_app, worker
+
+
+def through_socket(content: RecordDict) -> RecordDict:
+    """``content`` sent the way the proxy and the worker send message contents, and read back."""
+    here, there = socket.socketpair()
+    received = {}
+    reader = threading.Thread(target=lambda: received.setdefault("content", worker._recv_records(there)))
+    reader.start()
+    worker._send_records(here, content)
+    reader.join(timeout=60)
+    return received["content"]
+
+
+def test_message_contents_cross_the_socket_unchanged():
+    weights = {"a": torch.randn(3, 4).to(torch.bfloat16).view(torch.int16), "b": torch.randn(5)}
+    content = RecordDict(
+        {
+            "arrays": ArrayRecord(weights),
+            "none": ArrayRecord(),
+            "config": ConfigRecord({"server-round": 3, "run-name": "r"}),
+            "metrics": MetricRecord({"loss": 0.5}),
+        }
+    )
+    back = through_socket(content)
+    assert set(back) == set(content)
+    for name, tensor in weights.items():
+        assert np.array_equal(back["arrays"][name].numpy(), tensor.numpy())
+        assert back["arrays"][name].dtype == content["arrays"][name].dtype
+    assert len(back["none"]) == 0
+    assert dict(back["config"]) == {"server-round": 3, "run-name": "r"} and dict(back["metrics"]) == {"loss": 0.5}
+
+
+def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(tmp_path, monkeypatch, registry):
+    """A socket folder others may enter is refused; the message is answered in this process instead."""
+    from loguru import logger
+
+    from zk0.client import build_client
+    from zk0.config import RunConfig
+    from zk0.policy import backbone_fingerprint, trainable_tensors
+    from zk0.wire import encode
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    shared = tmp_path / f"zk0-{os.getuid()}"
+    shared.mkdir()
+    shared.chmod(0o755)
+    run = RunConfig(batch_size=2, local_steps=1)
+    server = build_client(run, registry.clients[0], registry.model_cameras())
+    config = {
+        "server-round": 1, "proximal-mu": 0.0, "run-name": "r1", "app-fingerprint": app_fingerprint(),
+        "backbone-fingerprint": backbone_fingerprint(server.bundle),
+    }  # fmt: skip
+    TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 5, 1, 0
+    message = Message(
+        content=RecordDict(
+            {"arrays": encode(trainable_tensors(server.bundle), run.wire_dtype), "config": ConfigRecord(config)}
+        ),
+        dst_node_id=9,
+        message_type=MessageType.TRAIN,
+    )
+    node_config = {"partition-id": 0, "output-dir": str(tmp_path / "owner"), "warm-worker": True}
+    context = Context(
+        run_id=5, node_id=9, node_config=node_config, state=RecordDict(), run_config={"batch-size": 2, "local-steps": 1}
+    )
+    warnings = []
+    sink = logger.add(lambda m: warnings.append(str(m)), level="WARNING")
+    try:
+        reply = client_app._handle("train", message, context)
+    finally:
+        with contextlib.suppress(ValueError):  # the client's setup_logging replaces loguru's handlers
+            logger.remove(sink)
+    assert any("not a private folder" in w and "in the ClientApp process instead" in w for w in warnings)
+    metrics = reply["metrics"]
+    assert metrics["num-examples"] == 2 and metrics["worker-s"] == 0.0
+    assert set(reply["arrays"]) == set(server.bundle.trainable_names)
+    assert not list(shared.iterdir()), "no worker was started in the shared folder"
