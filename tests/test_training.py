@@ -145,3 +145,44 @@ def test_a_stale_session_catches_up_with_a_newer_one(client_parts):
     newer.fit(steps=4, mu=0.0, global_step=0)
     stale.restore(newer.batches_seen, newer.optimizer_record())
     assert stale._next_batch()["index"].tolist() == newer._next_batch()["index"].tolist()
+
+
+def test_a_compiled_policy_keeps_fedprox_and_its_compiled_code(registry, monkeypatch):
+    """``compile = true``: lerobot compiles SmolVLA's forward; FedProx's hooks still reach every
+    trainable gradient, and the compiled code goes to $ZK0_CACHE/inductor for later processes."""
+    import os
+
+    from zk0.assets import default_cache_root
+    from zk0.client import build_client
+    from zk0.data import prepare_batch
+
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    client = build_client(
+        RunConfig(compile=True, batch_size=2, local_steps=1), registry.clients[0], registry.model_cameras()
+    )
+    policy, split = client.bundle.policy, client.split
+    assert policy.config.compile_model and policy.config.compile_mode == "default"
+    batch = client.bundle.preprocessor(
+        prepare_batch(next(iter(client.trainer.loader)), split.meta.camera_keys, split.entry.task, client.bundle.device)
+    )
+    params = {n: p for n, p in policy.named_parameters() if n in client.bundle.trainable_names}
+    client.trainer.fedprox.anchor_at(mu=0.0)
+    with torch.no_grad():
+        for param in params.values():
+            param.add_(0.01)
+
+    def gradients(mu: float) -> dict[str, torch.Tensor]:
+        client.trainer.fedprox.mu = mu
+        policy.zero_grad(set_to_none=True)
+        torch.manual_seed(0)
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        return {n: p.grad.clone() for n, p in params.items() if p.grad is not None}
+
+    plain, proximal = gradients(0.0), gradients(0.5)
+    assert len(plain) > len(params) // 2, "the compiled forward reaches the trainable parameters"
+    for name, grad in plain.items():
+        torch.testing.assert_close(proximal[name] - grad, torch.full_like(grad, 0.5 * 0.01), rtol=1e-3, atol=1e-5)
+    assert client.trainer.fedprox.loss() > 0
+    cache = default_cache_root() / "inductor"
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(cache) and any(cache.rglob("*.py")), "compiled code kept"

@@ -60,6 +60,7 @@ class RunConfig:
     hf_push_every_checkpoint: bool = False
     resume_from: str = ""
     wire_dtype: str = "bfloat16"
+    compile: bool = False  # lerobot's compile_model; zk0.policy keeps the compiled code in $ZK0_CACHE
 
     @property
     def total_steps(self) -> int:
