@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from zk0.bench import deployment, exchange, learning, memory, round, step
+from zk0.bench import deployment, exchange, gpu, learning, memory, round, step
 
 BENCHMARKS = {
     "learning": learning.main,
@@ -13,6 +13,7 @@ BENCHMARKS = {
     "round": round.main,
     "memory": memory.main,
     "deployment": deployment.main,
+    "gpu": gpu.main,
 }
 
 

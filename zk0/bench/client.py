@@ -21,6 +21,9 @@ def add_client_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-workers", type=int, default=0, help="DataLoader workers (-1 = the CPUs minus one)")
     parser.add_argument("--frame-cache-gb", type=float, default=RunConfig.frame_cache_gb, help="0 = decode always")
     parser.add_argument("--device", default="auto")
+    parser.add_argument(
+        "--compile", action="store_true", help="torch.compile the training forward (run-config compile)"
+    )
     parser.add_argument("--json", help="also write the figures to this JSON file")
 
 
@@ -45,6 +48,7 @@ def bench_client(args: argparse.Namespace, local_steps: int) -> tuple[LocalTrain
         num_workers=args.num_workers,
         frame_cache_gb=args.frame_cache_gb,
         device=args.device,
+        compile=args.compile,
         num_server_rounds=1,
         local_steps=local_steps,
     )
