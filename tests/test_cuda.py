@@ -39,3 +39,21 @@ def test_evaluation_on_cuda_is_seeded(cuda_client):
     runs = [evaluate(cuda_client.bundle, cuda_client.split, cuda_client.eval_batches, 1, seed=3) for _ in range(2)]
     assert runs[0]["policy-loss"] == pytest.approx(runs[1]["policy-loss"], rel=1e-3)
     assert runs[0]["action-mse"] > 0
+
+
+def test_frames_reach_the_gpu_as_uint8_and_the_processors_run_there(cuda_client):
+    """Pinned uint8 frames are copied with non_blocking and scaled on the device; the preprocessor
+    (normalisation, tokenisation) leaves every tensor on the client's GPU."""
+    from zk0.data import prepare_batch
+
+    split, bundle = cuda_client.split, cuda_client.bundle
+    batch = next(iter(cuda_client.trainer.loader))
+    camera = split.meta.camera_keys[0]
+    assert batch[camera].dtype == torch.uint8 and batch[camera].is_pinned()
+    raw = batch[camera].clone()
+    moved = prepare_batch(batch, split.meta.camera_keys, split.entry.task, bundle.device)
+    assert moved[camera].device == bundle.device and moved[camera].dtype == torch.float32
+    torch.testing.assert_close(moved[camera].cpu(), raw.float() / 255.0, rtol=0, atol=0)
+    ready = bundle.preprocessor(moved)
+    tensors = [value for value in ready.values() if isinstance(value, torch.Tensor)]
+    assert tensors and all(t.device == bundle.device for t in tensors)
