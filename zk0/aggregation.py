@@ -26,11 +26,10 @@ from flwr.serverapp.strategy import FedProx
 from loguru import logger
 
 from zk0.errors import Zk0Error
-from zk0.wire import decode, encode
+from zk0.wire import EVALUATE_ROUND, EVALUATION, decode, encode
 
 # (phase, round, the reply contents that counted, their weighted aggregate)
 ClientRecorder = Callable[[str, int, list[RecordDict], MetricRecord | None], None]
-EVALUATION = "evaluation"  # the ConfigRecord of a train reply that holds the previous round's evaluation
 
 
 def array_signature(arrays: ArrayRecord) -> dict[str, tuple[tuple[int, ...], str]]:
@@ -93,7 +92,7 @@ class ValidatingFedProx(FedProx):
         """Ask a ``fraction-evaluate`` sample of the training clients to evaluate round ``previous`` first."""
         count = min(len(messages), max(self.min_evaluate_nodes, int(len(messages) * self.fraction_evaluate)))
         for msg in random.sample(messages, count) if self.fraction_evaluate > 0 else []:
-            config = ConfigRecord({**msg.content[self.configrecord_key], "evaluate-round": previous})
+            config = ConfigRecord({**msg.content[self.configrecord_key], EVALUATE_ROUND: previous})
             msg.content = RecordDict({**msg.content, self.configrecord_key: config})
 
     def _log_missing(self, server_round: int, valid: list[Message]) -> None:

@@ -33,7 +33,7 @@ from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_po
 from zk0.registry import DatasetEntry, Registry, RegistryError, load_registry
 from zk0.stats import stats_to_record
 from zk0.training import LocalTrainer, evaluate
-from zk0.wire import decode, encode
+from zk0.wire import EVALUATE_ROUND, EVALUATION, decode, encode
 
 # What must outlive a one-message process, in the node's Context.state.
 OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
@@ -169,7 +169,7 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     config = content["config"]
     server_round = int(config["server-round"])
     run = session.run
-    evaluation = _evaluate(session, content)["metrics"] if int(config.get("evaluate-round", 0)) else None
+    evaluation = _evaluate(session, content)["metrics"] if int(config.get(EVALUATE_ROUND, 0)) else None
     metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), (server_round - 1) * run.local_steps)
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
     if keep_optimizer:
@@ -191,14 +191,14 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
         }
     )
     if evaluation:
-        reply["evaluation"] = ConfigRecord(dict(evaluation))  # one MetricRecord per reply, as Flower requires
+        reply[EVALUATION] = ConfigRecord(dict(evaluation))  # one MetricRecord per reply, as Flower requires
     return reply
 
 
 def _evaluate(session: ClientSession, content: RecordDict) -> RecordDict:
     run = session.run
     metrics = evaluate(session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed)
-    evaluated = int(content["config"].get("evaluate-round", content["config"]["server-round"]))
+    evaluated = int(content["config"].get(EVALUATE_ROUND, content["config"]["server-round"]))
     logger.info("Round {} evaluate on {}: {}", evaluated, session.split.entry.name, metrics)
     return RecordDict({"metrics": MetricRecord({**metrics, "dataset-index": session.index})})
 

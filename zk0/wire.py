@@ -13,6 +13,10 @@ from flwr.app import ArrayRecord
 
 from zk0.errors import Zk0Error
 
+# Names both ends use for the evaluation that rides on a train message (zk0.aggregation):
+EVALUATE_ROUND = "evaluate-round"  # train config: evaluate the received model (that round's) first
+EVALUATION = "evaluation"  # train reply: a ConfigRecord with that evaluation's metrics
+
 
 def encode(tensors: dict[str, torch.Tensor], wire_dtype: str) -> ArrayRecord:
     """fp32 tensors -> an ArrayRecord in ``wire_dtype``."""

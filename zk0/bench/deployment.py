@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -119,8 +120,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.rounds < 2:
         parser.error("--rounds must be at least 2: round 1 builds every client, the steady state starts at 2.")
     if args.cpus_per_node is None:
-        import os
-
         args.cpus_per_node = max(1, len(os.sched_getaffinity(0)) // args.clients)
 
     runs: dict[str, list[dict]] = {"simulation": [], "deployment": []}
