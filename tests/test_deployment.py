@@ -63,6 +63,21 @@ def workers_under(root: Path) -> list[psutil.Process]:
     return found
 
 
+def test_bad_supernode_options_fail_in_one_sentence_before_connecting(tmp_path):
+    """Nothing starts: each bad value is named in one sentence and the command exits 2."""
+    occupied = tmp_path / "a-file"
+    occupied.write_text("")
+    base = [tool("zk0"), "supernode", "--superlink", "127.0.0.1:1", "--insecure", "--dataset", "synth-so100-pickplace"]
+    for extra, expected in [
+        (["--cpus", "0"], "zk0: --cpus got 0; expected a number from 1 to "),
+        (["--output-dir", str(occupied / "logs")], f"zk0: --output-dir got '{occupied / 'logs'}', where no folder"),
+        (["--output-dir", "it's"], "zk0: --output-dir got "),
+    ]:
+        done = subprocess.run([*base, *extra], capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path)
+        assert done.returncode == 2 and done.stderr.startswith(expected), (extra, done.stderr)
+        assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
+
+
 def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federation):
     stranger = federation.supernode("stranger", "synth-so101-reach", "--key", "stranger")
     plaintext = federation.supernode("plaintext", "synth-so101-sorting", "--insecure")

@@ -99,7 +99,8 @@ def _supernode(args: argparse.Namespace) -> int:
     cpus = len(os.sched_getaffinity(0))
     if args.cpus is not None and not 1 <= args.cpus <= cpus:
         raise Zk0Error(f"--cpus got {args.cpus}; expected a number from 1 to {cpus}, the CPUs this process may use.")
-    config = node_config(args.dataset, Path(args.output_dir).expanduser().resolve(), not args.no_warm_worker)
+    output_dir = writable_folder(Path(args.output_dir).expanduser().resolve(), "--output-dir")
+    config = node_config(args.dataset, output_dir, not args.no_warm_worker)
     command = supernode_command(args.superlink, certs, args.key, config, args.runtime_port)
     env = {**thread_env(args.cpus or cpus), **SUPEREXEC_POLL}
     if args.dry_run:
@@ -107,6 +108,17 @@ def _supernode(args: argparse.Namespace) -> int:
     else:
         deploy.run(command, env)
     return 0
+
+
+def writable_folder(path: Path, flag: str) -> Path:
+    """``path``, created if missing, or one sentence when this user cannot write there."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise Zk0Error(f"{flag} got {str(path)!r}, where no folder can be created ({err.strerror}).") from None
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise Zk0Error(f"{flag} got {str(path)!r}, which this user cannot write to; expected a writable folder.")
+    return path
 
 
 def split_address(address: str) -> tuple[str, int]:
