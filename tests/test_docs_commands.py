@@ -28,7 +28,7 @@ ELSEWHERE = {
     "docker build": "no Docker engine here; the Dockerfile is linted by tests/test_scripts.py",
     "./test.sh": "the test command itself",
     "source scripts/setup.sh": "what ./train.sh and ./test.sh run first",
-    "lerobot-record": "needs a robot; the checkpoint loading is tested in tests/test_production.py",
+    "lerobot-record": "needs a robot; loading the checkpoint and predicting with it is tested in tests/test_federation.py",
     "cd ": "moves into the clone",
     "git clone": "needs the network",
     "tmux ": "attaching to a detached run",
