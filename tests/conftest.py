@@ -35,3 +35,15 @@ def client_parts(registry, run_config):
 
     client = build_client(run_config, registry.clients[0], registry.model_cameras())
     return client.bundle, client.split, client.trainer
+
+
+@pytest.fixture
+def flower_task():
+    """Flower's runtime sets who is sending a Message; here the test plays task 1 of run 1 on node 0,
+    and Flower's class state is put back afterwards."""
+    from flwr.supercore.task_identity import TaskIdentity
+
+    saved = TaskIdentity._run_id, TaskIdentity._task_id, TaskIdentity._node_id
+    TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 1, 1, 0
+    yield
+    TaskIdentity._run_id, TaskIdentity._task_id, TaskIdentity._node_id = saved

@@ -5,15 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from flwr.app import ArrayRecord, ConfigRecord, Error, Message, MessageType, MetricRecord, RecordDict
-from flwr.supercore.task_identity import TaskIdentity
+from loguru import logger
 
-from zk0.aggregation import ValidatingFedProx, array_signature, update_problem
+from zk0.aggregation import RunCannotTrain, ValidatingFedProx, array_signature, update_problem
+from zk0.errors import REFUSED
 
-
-@pytest.fixture(autouse=True)
-def server_identity():
-    """Flower's runtime sets who is sending; here the test plays the ServerApp of run 1."""
-    TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 1, 1, 0
+pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 
 
 def arrays(a: float, b: float = 0.0, a_shape=(2, 3)) -> ArrayRecord:
@@ -43,7 +40,7 @@ def strategy():
     strat = ValidatingFedProx(
         expected=array_signature(arrays(0.0)),
         evaluates_in=lambda rnd: rnd % 2 == 0,
-        recorder=lambda phase, rnd, replies, agg: recorded.append((phase, rnd, len(replies), agg)),
+        recorder=lambda phase, rnd, replies, agg, failed: recorded.append((phase, rnd, len(replies), agg, failed)),
         last_round=4,
         proximal_mu=0.01,
         min_train_nodes=2,
@@ -74,13 +71,37 @@ def test_average_is_weighted_by_samples_and_skips_bad_updates(strategy):
     np.testing.assert_allclose(result["a"].numpy(), np.full((2, 3), (1 * 10 + 4 * 30) / 40))
     np.testing.assert_allclose(result["b"].numpy(), np.full(4, (10 * 10 + 40 * 30) / 40))
     assert metrics["train-loss"] == pytest.approx((1 * 10 + 2 * 30) / 40)
-    assert strategy.recorded == [("train", 1, 2, metrics)]
+    assert strategy.recorded == [("train", 1, 2, metrics, {})]
 
 
-def test_too_few_valid_updates_keep_the_global_model(strategy):
-    result, metrics = strategy.aggregate_train(1, [reply(1, arrays(1.0), 10), reply(2, arrays(float("nan")), 10)])
+def test_too_few_valid_updates_after_round_1_keep_the_global_model(strategy):
+    result, metrics = strategy.aggregate_train(2, [reply(1, arrays(1.0), 10), reply(2, arrays(float("nan")), 10)])
     assert (result, metrics) == (None, None)
-    assert strategy.recorded == [("train", 1, 1, None)]
+    assert strategy.recorded == [("train", 2, 1, None, {})]
+
+
+def refused(node: int, reason: str) -> Message:
+    instruction = Message(content=RecordDict({}), dst_node_id=node, message_type=MessageType.TRAIN)
+    return Message(Error(code=REFUSED, reason=reason), reply_to=instruction)
+
+
+def test_a_first_round_without_enough_updates_stops_the_run_with_each_clients_sentence(strategy):
+    messages = []
+    sink = logger.add(lambda m: messages.append(m.record["message"]), level="WARNING")
+    try:
+        with pytest.raises(RunCannotTrain) as stopped:
+            strategy.aggregate_train(1, [refused(1, "Client 0 (a): Dataset 'a' records no camera."), failed(2)])
+    finally:
+        logger.remove(sink)
+    assert str(stopped.value) == (
+        "Round 1 got 0 usable update(s), fewer than min-train-clients=2, so this run cannot train; "
+        "the clients' reasons are above."
+    )
+    assert messages == [
+        "Round 1: Client 0 (a): Dataset 'a' records no camera.",
+        "Round 1: node 2 failed: client crashed",
+    ]
+    assert strategy.recorded == [], "nothing is recorded as if the round had trained"
 
 
 class TwoNodes:
@@ -108,7 +129,19 @@ def test_evaluations_carried_by_train_replies_are_recorded_for_the_round_they_ev
     for msg, mse in zip(replies, (1.0, 5.0), strict=True):
         msg.content["evaluation"] = ConfigRecord({"action-mse": mse, "num-examples": 4 * mse, "dataset-index": 0})
     strategy.aggregate_train(3, replies)
-    phase, evaluated, count, aggregate = strategy.recorded[0]
-    assert (phase, evaluated, count) == ("evaluate", 2, 2)
+    phase, evaluated, count, aggregate, failures = strategy.recorded[0]
+    assert (phase, evaluated, count, failures) == ("evaluate", 2, 2, {})
     assert aggregate["action-mse"] == pytest.approx((1.0 * 4 + 5.0 * 20) / 24), "weighted by examples evaluated"
     assert strategy.recorded[1][:3] == ("train", 3, 2)
+
+
+def test_a_failed_client_evaluation_is_recorded_with_its_reason_and_training_still_counts(strategy):
+    replies = [reply(1, arrays(1.0), 10), reply(2, arrays(3.0), 30)]
+    replies[0].content["evaluation"] = ConfigRecord({"action-mse": 2.0, "num-examples": 8, "dataset-index": 1})
+    reason = "Client 2 (b): Dataset 'b': 3 of 3 held-out batches could not be decoded, more than max-skip-fraction=0.1."
+    replies[1].content["evaluation"] = ConfigRecord({"error": reason, "dataset-index": 2})
+    result, _ = strategy.aggregate_train(3, replies)
+    assert result is not None
+    phase, evaluated, count, aggregate, failures = strategy.recorded[0]
+    assert (phase, evaluated, count, failures) == ("evaluate", 2, 1, {2: reason})
+    assert aggregate["action-mse"] == pytest.approx(2.0)

@@ -25,11 +25,15 @@ from flwr.serverapp import Grid
 from flwr.serverapp.strategy import FedProx
 from loguru import logger
 
-from zk0.errors import Zk0Error
+from zk0.errors import REFUSED, Zk0Error
 from zk0.wire import EVALUATE_ROUND, EVALUATION, decode, encode
 
-# (phase, round, the reply contents that counted, their weighted aggregate)
-ClientRecorder = Callable[[str, int, list[RecordDict], MetricRecord | None], None]
+# (phase, round, the reply contents that counted, their weighted aggregate, failed clients' reasons by index)
+ClientRecorder = Callable[[str, int, list[RecordDict], MetricRecord | None, dict[int, str]], None]
+
+
+class RunCannotTrain(Zk0Error):
+    """The run's first round produced too few updates to train anything."""
 
 
 def array_signature(arrays: ArrayRecord) -> dict[str, tuple[tuple[int, ...], str]]:
@@ -109,7 +113,7 @@ class ValidatingFedProx(FedProx):
         valid = []
         for msg in replies:
             if msg.has_error():
-                logger.warning("Round {}: node {} failed: {}", server_round, msg.metadata.src_node_id, msg.error.reason)
+                self._log_failure(server_round, msg)
                 continue
             try:  # averaged in fp32, whatever travelled
                 msg.content[self.arrayrecord_key] = ArrayRecord(
@@ -132,6 +136,15 @@ class ValidatingFedProx(FedProx):
                 self.node_clients[msg.metadata.src_node_id] = int(metrics["dataset-index"])
         return valid
 
+    @staticmethod
+    def _log_failure(server_round: int, msg: Message) -> None:
+        """A client's refusal is its own sentence (it names the client and dataset); anything else
+        comes from Flower or a crash and is named by node."""
+        if msg.error.code == REFUSED:
+            logger.error("Round {}: {}", server_round, msg.error.reason)
+        else:
+            logger.warning("Round {}: node {} failed: {}", server_round, msg.metadata.src_node_id, msg.error.reason)
+
     def aggregate_train(
         self, server_round: int, replies: Iterable[Message]
     ) -> tuple[ArrayRecord | None, MetricRecord | None]:
@@ -139,6 +152,11 @@ class ValidatingFedProx(FedProx):
         valid = self.valid_updates(server_round, list(replies))
         self._log_missing(server_round, valid)
         self._record_evaluation(server_round - 1, valid)
+        if len(valid) < self.min_train_nodes and server_round == self.round_offset + 1:
+            raise RunCannotTrain(
+                f"Round {server_round} got {len(valid)} usable update(s), fewer than min-train-clients="
+                f"{self.min_train_nodes}, so this run cannot train; the clients' reasons are above."
+            )
         if len(valid) < self.min_train_nodes:
             logger.warning(
                 "Round {}: {} valid updates, fewer than min-train-clients={}; the global model is kept.",
@@ -146,25 +164,25 @@ class ValidatingFedProx(FedProx):
                 len(valid),
                 self.min_train_nodes,
             )
-            self.recorder("train", server_round, [m.content for m in valid], None)
+            self.recorder("train", server_round, [m.content for m in valid], None, {})
             return None, None
         arrays, metrics = super().aggregate_train(server_round, valid)
-        self.recorder("train", server_round, [m.content for m in valid], metrics)
+        self.recorder("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
 
     def _record_evaluation(self, evaluated_round: int, replies: list[Message]) -> None:
-        """The evaluations that train replies carry: the clients' metrics for ``evaluated_round``."""
-        contents = [
-            RecordDict({"metrics": MetricRecord(dict(msg.content[EVALUATION]))})
-            for msg in replies
-            if EVALUATION in msg.content
-        ]
+        """The evaluations that train replies carry: the clients' metrics for ``evaluated_round``, or
+        why a client's evaluation failed (its training may still have counted)."""
+        evaluations = [dict(msg.content[EVALUATION]) for msg in replies if EVALUATION in msg.content]
+        failures = {int(e["dataset-index"]): str(e["error"]) for e in evaluations if "error" in e}
+        contents = [RecordDict({"metrics": MetricRecord(e)}) for e in evaluations if "error" not in e]
+        aggregate = self.evaluate_metrics_aggr_fn(contents, self.weighted_by_key) if contents else None
         if contents:
-            aggregate = self.evaluate_metrics_aggr_fn(contents, self.weighted_by_key)
             logger.info(
                 "Round {} client evaluation (sent with round {}): {}", evaluated_round, evaluated_round + 1, aggregate
             )
-            self.recorder("evaluate", evaluated_round, contents, aggregate)
+        if evaluations:
+            self.recorder("evaluate", evaluated_round, contents, aggregate, failures)
 
     def configure_evaluate(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
@@ -181,6 +199,12 @@ class ValidatingFedProx(FedProx):
         replies = list(replies)
         if not replies:
             return None
-        metrics = super().aggregate_evaluate(server_round, replies)
-        self.recorder("evaluate", server_round, [m.content for m in replies if not m.has_error()], metrics)
+        failures = {}
+        for msg in (m for m in replies if m.has_error()):
+            self._log_failure(server_round, msg)
+            if (client := self.node_clients.get(msg.metadata.src_node_id)) is not None:
+                failures[client] = msg.error.reason
+        answered = [m for m in replies if not m.has_error()]  # the failures are logged once, above
+        metrics = super().aggregate_evaluate(server_round, answered) if answered else None
+        self.recorder("evaluate", server_round, [m.content for m in answered], metrics, failures)
         return metrics

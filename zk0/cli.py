@@ -63,13 +63,21 @@ def _check(args: argparse.Namespace) -> int:
     run = from_run_config({**flatten_dict(table), **overrides})
     registry = load_registry(run.registry)
     registry.get(run.server_eval_dataset)
-    if args.print:  # one flat override string for `flwr run --run-config`
+    if args.print:  # one flat override string for `flwr run --run-config`; datasets are not opened
         print(" ".join(f"{key}={_toml_value(value)}" for key, value in overrides.items()))
-    else:
-        print(
-            f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, "
-            f"{len(registry.clients)} client datasets."
-        )
+        return 0
+    from zk0.preflight import check_federation  # torch and lerobot: only when datasets are checked
+
+    report = check_federation(run, registry)
+    for problem in report.problems:
+        print(f"zk0: {problem}", file=sys.stderr)
+    if report.problems:
+        return 2
+    absent = f"; not on this machine, so not checked: {', '.join(report.skipped)}" if report.skipped else ""
+    print(
+        f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, "
+        f"{len(registry.clients)} client datasets. Datasets OK: {', '.join(report.checked) or 'none'}{absent}."
+    )
     return 0
 
 
@@ -95,7 +103,8 @@ def _superlink(args: argparse.Namespace) -> int:
 
 def _supernode(args: argparse.Namespace) -> int:
     certs = None if args.insecure else Path(args.certs)
-    load_registry(args.registry).get(args.dataset)  # a typo fails here, not in round 1
+    registry = load_registry(args.registry)
+    entry = registry.get_client(args.dataset)  # a typo fails here, not in round 1
     cpus = len(os.sched_getaffinity(0))
     if args.cpus is not None and not 1 <= args.cpus <= cpus:
         raise Zk0Error(f"--cpus got {args.cpus}; expected a number from 1 to {cpus}, the CPUs this process may use.")
@@ -105,8 +114,11 @@ def _supernode(args: argparse.Namespace) -> int:
     env = {**thread_env(args.cpus or cpus), **SUPEREXEC_POLL}
     if args.dry_run:
         print(" ".join(f"{k}={v}" for k, v in env.items()), shlex.join(command))
-    else:
-        deploy.run(command, env)
+        return 0
+    from zk0.preflight import ModelInputs, check_dataset  # torch and lerobot: only when starting for real
+
+    check_dataset(entry, ModelInputs(tuple(registry.model_cameras())), eval_episodes=None)  # before connecting
+    deploy.run(command, env)
     return 0
 
 
@@ -147,7 +159,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--only", nargs="+", metavar="NAME", help=f"only these assets: {TINY_BACKBONE} {' '.join(SPECS)}"
     )
     assets.set_defaults(func=_assets)
-    check = commands.add_parser("check", help="validate run-config overrides and the dataset registry")
+    check = commands.add_parser(
+        "check", help="validate run-config overrides, the registry, and every dataset on this machine"
+    )
     check.add_argument(
         "--run-config", action="append", default=[], help='overrides as for flwr run, e.g. "local-steps=5"'
     )
@@ -209,7 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--insecure", action="store_true", help="no TLS, no authentication (trusted test networks only)"
     )
     supernode.add_argument(
-        "--dry-run", action="store_true", help="print the flower-supernode command instead of running it"
+        "--dry-run",
+        action="store_true",
+        help="print the flower-supernode command instead of running it (the dataset is not opened)",
     )
     supernode.set_defaults(func=_supernode)
     return parser

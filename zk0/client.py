@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,13 +29,15 @@ from torch.utils.data import DataLoader
 
 from zk0 import app_fingerprint
 from zk0.config import ConfigError, RunConfig, from_run_config
-from zk0.data import DatasetSplit, eval_loader, open_metadata, open_split, train_loader
+from zk0.data import DatasetSplit, eval_loader, open_split, train_loader
+from zk0.errors import Zk0Error
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, set_trainable, trainable_tensors
-from zk0.registry import DatasetEntry, Registry, RegistryError, load_registry
+from zk0.preflight import check_dataset, model_inputs
+from zk0.registry import DatasetEntry, Registry, load_registry
 from zk0.stats import stats_to_record
 from zk0.training import LocalTrainer, evaluate
-from zk0.wire import EVALUATE_ROUND, EVALUATION, decode, encode
+from zk0.wire import EVALUATE_ROUND, EVALUATION, SHAPE, decode, encode
 
 # What must outlive a one-message process, in the node's Context.state.
 OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
@@ -58,20 +62,22 @@ class ClientSession:
 def client_index(registry: Registry, node_config: dict) -> int:
     """The client's registry index: ``dataset`` in the node config, else the simulation partition id."""
     if "dataset" in node_config:
-        entry = registry.get(str(node_config["dataset"]))
-        if entry not in registry.clients:
-            raise RegistryError(f"Dataset {entry.name!r} has role {entry.role!r}; a SuperNode needs a client dataset.")
-        return registry.clients.index(entry)
+        return registry.clients.index(registry.get_client(str(node_config["dataset"])))
     partition = int(node_config.get("partition-id", 0))
     registry.for_partition(partition)
     return partition
 
 
-def build_client(run: RunConfig, entry: DatasetEntry, model_cameras: list[str], index: int = 0) -> ClientSession:
-    """Open ``entry`` (client ``index``) and build its SmolVLA, split, loaders and trainer."""
+def build_client(
+    run: RunConfig, entry: DatasetEntry, model_cameras: list[str], index: int = 0, shapes: dict | None = None
+) -> ClientSession:
+    """Check and open ``entry`` (client ``index``) and build its SmolVLA, split, loaders and trainer.
+
+    ``shapes`` are the global model's state/action sizes, as the server sends them.
+    """
     party = f"client {index}"
     with logger.contextualize(party=party):
-        meta = open_metadata(entry)
+        meta = check_dataset(entry, model_inputs(run, model_cameras, shapes), run.eval_episodes)
         bundle = build_policy(run, meta, entry, model_cameras)
         split = open_split(entry, meta, bundle.policy.config, run)
         trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
@@ -116,9 +122,29 @@ def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, 
     run = from_run_config(dict(context.run_config))
     registry = load_registry(run.registry)
     index = client_index(registry, dict(context.node_config))
+    entry = registry.clients[index]
     add_file_sink(client_log(dict(context.node_config), run, str(config["run-name"]), index), f"client {index}")
-    _SESSIONS[key] = build_client(run, registry.clients[index], registry.model_cameras(), index)
+    with _named(index, entry.name):
+        _SESSIONS[key] = build_client(run, entry, registry.model_cameras(), index, model_shapes(config))
     return _SESSIONS[key], time.perf_counter() - started
+
+
+@contextmanager
+def _named(index: int, dataset: str) -> Iterator[None]:
+    """Prefix a user error's sentence with the client it happened on: the server reads it without
+    knowing which node is which client."""
+    label = f"Client {index} ({dataset})"
+    try:
+        yield
+    except Zk0Error as err:
+        if str(err).startswith(label):
+            raise
+        raise type(err)(f"{label}: {err}") from None
+
+
+def model_shapes(config: ConfigRecord) -> dict[str, tuple[int, ...]]:
+    """The global model's state/action sizes from the server's config (``shape:<feature>`` keys)."""
+    return {key.removeprefix(SHAPE): tuple(value) for key, value in config.items() if key.startswith(SHAPE)}
 
 
 def release_sessions(keep_run: int | None = None) -> None:
@@ -169,7 +195,7 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     config = content["config"]
     server_round = int(config["server-round"])
     run = session.run
-    evaluation = _evaluate(session, content)["metrics"] if int(config.get(EVALUATE_ROUND, 0)) else None
+    evaluation = _evaluate_before_training(session, content) if int(config.get(EVALUATE_ROUND, 0)) else None
     metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), (server_round - 1) * run.local_steps)
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
     if keep_optimizer:
@@ -183,7 +209,7 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
                 {
                     **metrics,
                     "update-bytes": update.count_bytes(),
-                    "evaluate-s": evaluation["eval-s"] if evaluation else 0.0,
+                    "evaluate-s": float(evaluation.get("eval-s", 0.0)) if evaluation else 0.0,
                     "dataset-index": session.index,
                 }
             ),
@@ -195,9 +221,22 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     return reply
 
 
+def _evaluate_before_training(session: ClientSession, content: RecordDict) -> dict:
+    """The received model's evaluation, or why it failed: a failed evaluation (unreadable held-out
+    frames, say) is reported to the server and does not cost the round's training."""
+    try:
+        return dict(_evaluate(session, content)["metrics"])
+    except Zk0Error as err:
+        reason = f"Client {session.index} ({session.split.entry.name}): {err}"
+        logger.error("zk0: {}", reason)
+        return {"error": reason, "dataset-index": session.index}
+
+
 def _evaluate(session: ClientSession, content: RecordDict) -> RecordDict:
     run = session.run
-    metrics = evaluate(session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed)
+    metrics = evaluate(
+        session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed, run.max_skip_fraction
+    )
     evaluated = int(content["config"].get(EVALUATE_ROUND, content["config"]["server-round"]))
     logger.info("Round {} evaluate on {}: {}", evaluated, session.split.entry.name, metrics)
     return RecordDict({"metrics": MetricRecord({**metrics, "dataset-index": session.index})})
@@ -214,7 +253,7 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
     startup = time.time() - psutil.Process().create_time() if _FRESH_PROCESS else 0.0
     _FRESH_PROCESS = False
     session, build = session_for(context, content["config"])
-    with logger.contextualize(party=session.party):
+    with logger.contextualize(party=session.party), _named(session.index, session.split.entry.name):
         _check_server(session, content["config"])
         set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
         restore = _catch_up(session, context) if kind == "train" else 0.0

@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import time
 
-from flwr.app import Context, Message, RecordDict
+from flwr.app import Context, Error, Message, RecordDict
 from flwr.clientapp import ClientApp
 from loguru import logger
 
 from zk0 import worker
+from zk0.errors import REFUSED, Zk0Error
 
 app = ClientApp()
 
@@ -23,13 +24,23 @@ app = ClientApp()
 @app.train()
 def train(msg: Message, context: Context) -> Message:
     """Load the global trainable weights, take ``local-steps`` FedProx steps, send the new weights back."""
-    return Message(content=_handle("train", msg, context), reply_to=msg)
+    return _reply("train", msg, context)
 
 
 @app.evaluate()
 def evaluate(msg: Message, context: Context) -> Message:
     """Policy loss and action MSE of the global model on this client's held-out episodes."""
-    return Message(content=_handle("evaluate", msg, context), reply_to=msg)
+    return _reply("evaluate", msg, context)
+
+
+def _reply(kind: str, msg: Message, context: Context) -> Message:
+    """The handler's reply, or for the owner's own mistake (a bad dataset, say) an error reply whose
+    reason is zk0's one sentence: the server prints it, and no traceback buries it."""
+    try:
+        return Message(content=_handle(kind, msg, context), reply_to=msg)
+    except Zk0Error as err:
+        logger.error("zk0: {}", err)
+        return Message(Error(code=REFUSED, reason=str(err)), reply_to=msg)
 
 
 def _handle(kind: str, msg: Message, context: Context) -> RecordDict:

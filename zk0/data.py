@@ -55,6 +55,12 @@ def open_metadata(entry: DatasetEntry) -> LeRobotDatasetMetadata:
             f"Dataset {entry.name!r} ({entry.repo_id}) is in an older LeRobot format; convert it to v3.0 with "
             f"`python -m lerobot.scripts.convert_dataset_v21_to_v30 --repo-id={entry.repo_id}` and pin the new revision."
         ) from None
+    except OSError as err:  # Hub and file errors (offline, no such repo or revision, unreadable files)
+        where = f"at {entry.root!r}" if entry.root else "on the Hugging Face Hub or in its cache (HF_LEROBOT_HOME)"
+        raise DataError(
+            f"Dataset {entry.name!r} ({entry.repo_id}) cannot be opened {where}: {type(err).__name__}: {err}".rstrip(".")
+            + "."
+        ) from None
 
 
 def video_backend(requested: str) -> str:

@@ -74,6 +74,13 @@ class Registry:
             f"Dataset {key!r} is not in the registry; expected one of {[e.name for e in self.entries]}."
         )
 
+    def get_client(self, key: str) -> DatasetEntry:
+        """A client entry by registry name or repo id (what a SuperNode trains on)."""
+        entry = self.get(key)
+        if entry.role != "client":
+            raise RegistryError(f"Dataset {entry.name!r} has role {entry.role!r}; a SuperNode needs a client dataset.")
+        return entry
+
     def for_partition(self, partition_id: int) -> DatasetEntry:
         """The client entry for simulation partition ``partition_id``."""
         clients = self.clients

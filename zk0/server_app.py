@@ -15,7 +15,9 @@ from pathlib import Path
 
 from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord, RecordDict
 from flwr.serverapp import Grid, ServerApp
+from flwr.superlink.grid import InMemoryGrid
 from lerobot.datasets.compute_stats import aggregate_stats
+from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
@@ -23,17 +25,19 @@ from zk0 import app_fingerprint
 from zk0.aggregation import ValidatingFedProx, array_signature
 from zk0.artifacts import History, new_run_dir, save_checkpoint, write_json
 from zk0.config import RunConfig, from_run_config
-from zk0.data import DatasetSplit, eval_loader, open_evaluation, open_metadata
+from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
 from zk0.hub import can_push, publish
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.preflight import SIZED, check_federation
 from zk0.registry import Registry, load_registry
 from zk0.resume import ResumePoint, find_resume_point
 from zk0.stats import stats_from_record
 from zk0.tracking import Tracker
 from zk0.training import evaluate
+from zk0.wire import SHAPE
 
 app = ServerApp()
 
@@ -60,9 +64,17 @@ class RoundEnd:
         self.started = time.perf_counter()
 
     def record_clients(
-        self, phase: str, server_round: int, replies: list[RecordDict], aggregate: MetricRecord | None
+        self,
+        phase: str,
+        server_round: int,
+        replies: list[RecordDict],
+        aggregate: MetricRecord | None,
+        failures: dict[int, str],
     ) -> None:
-        """Keep each client's metrics (by dataset index, never node id), their aggregate and dataset statistics."""
+        """Keep each client's metrics (by dataset index, never node id), their aggregate, dataset
+        statistics, and why a client's reply failed (``failures``: dataset index -> reason)."""
+        for index, reason in failures.items():
+            self.history.add_client(server_round, phase, index, {"error": reason})
         if aggregate:
             summary = {k: v for k, v in aggregate.items() if k != "dataset-index"}
             self.history.add(server_round, f"aggregate-{phase}", summary)
@@ -81,7 +93,8 @@ class RoundEnd:
         self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         metrics = None
         if server_round == 0 or self.run.evaluates_in(server_round):
-            metrics = evaluate(self.bundle, self.split, self.loader, self.run.eval_batches, self.run.seed)
+            run = self.run
+            metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
             logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
             self.history.add(server_round, "server-evaluate", metrics)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
@@ -123,19 +136,37 @@ def record_run_config(run: RunConfig, run_dir: Path, resumed: ResumePoint | None
     write_json(path, run.to_flat())
 
 
+def preflight(run: RunConfig, registry: Registry, simulation: bool) -> LeRobotDatasetMetadata:
+    """Refuse unusable datasets before round 1, each in its own sentence; the server dataset's metadata.
+
+    In a simulation every client's dataset is on this machine and is checked here; in a
+    deployment each SuperNode checks its own (``zk0 supernode``, and its client on opening it).
+    """
+    report = check_federation(run, registry, clients=simulation, skip_absent=False)
+    for problem in report.problems:
+        logger.error("zk0: {}", problem)
+    if report.problems:
+        raise DataError(
+            f"{len(report.problems)} dataset(s) of this federation cannot be used (above); nothing trained."
+        )
+    return report.server_meta
+
+
 @app.main()
 def main(grid: Grid, context: Context) -> None:
-    """Validate the config, build the global model, run FedProx, write artifacts every round."""
+    """Validate the config and every local dataset, build the global model, run FedProx, write
+    artifacts every round."""
     setup_logging("server")
     try:
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)
-        entry = registry.get(run.server_eval_dataset)
         resumed = find_resume_point(run.resume_from) if run.resume_from else None
+        meta = preflight(run, registry, simulation=isinstance(grid, InMemoryGrid))
         run_dir = resumed.run_dir if resumed else new_run_dir(run.output_dir)
     except Zk0Error as err:
         logger.error("zk0: {}", err)  # the one sentence, before Flower's own report of the failure
         raise
+    entry = registry.get(run.server_eval_dataset)
     add_file_sink(run_dir / "server" / "server.log", "server")
     record_run_config(run, run_dir, resumed)
     done = resumed.round if resumed else 0
@@ -145,7 +176,6 @@ def main(grid: Grid, context: Context) -> None:
         )
         return
 
-    meta = open_metadata(entry)
     bundle = build_policy(run, meta, entry, registry.model_cameras())
     initial = resumed.trainable(bundle) if resumed else get_trainable(bundle)
     fingerprint = backbone_fingerprint(bundle)
@@ -178,14 +208,29 @@ def main(grid: Grid, context: Context) -> None:
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own
     # machine, never at a path of the server's) and what both ends must share.
-    shared = {"backbone-fingerprint": fingerprint, "app-fingerprint": app_fingerprint(), "run-name": run_dir.name}
-    strategy.start(
-        grid=PromptGrid(grid),
-        initial_arrays=initial,
-        num_rounds=run.num_server_rounds - done,
-        train_config=ConfigRecord(dict(shared)),
-        evaluate_config=ConfigRecord(dict(shared)),
-        evaluate_fn=round_end,
-    )
-    tracker.finish()
+    shared = {
+        "backbone-fingerprint": fingerprint,
+        "app-fingerprint": app_fingerprint(),
+        "run-name": run_dir.name,
+        **{SHAPE + key: list(ft.shape) for key, ft in model_features(bundle).items() if key in SIZED},
+    }
+    try:
+        strategy.start(
+            grid=PromptGrid(grid),
+            initial_arrays=initial,
+            num_rounds=run.num_server_rounds - done,
+            train_config=ConfigRecord(dict(shared)),
+            evaluate_config=ConfigRecord(dict(shared)),
+            evaluate_fn=round_end,
+        )
+    except Zk0Error as err:
+        logger.error("zk0: {}", err)
+        raise
+    finally:
+        tracker.finish()
     logger.info("Done: outputs in {}", run_dir)
+
+
+def model_features(bundle: PolicyBundle) -> dict:
+    """The global policy's input and output features (what every client's dataset must match)."""
+    return {**bundle.policy.config.input_features, **bundle.policy.config.output_features}

@@ -29,11 +29,23 @@ from torch.utils.data import DataLoader
 
 from zk0.config import RunConfig
 from zk0.data import DatasetSplit, prepare_batch
+from zk0.errors import Zk0Error
 from zk0.policy import PolicyBundle
 
 
-class TrainingError(RuntimeError):
-    """A round a client cannot complete (too many unreadable batches, say)."""
+class TrainingError(Zk0Error):
+    """A round a client cannot complete because of its data (too many unreadable batches)."""
+
+
+def check_skips(name: str, what: str, skipped: int, done: int, max_fraction: float, finished: bool = False) -> None:
+    """Refuse a dataset once more than ``max-skip-fraction`` of its batches could not be decoded
+    (judged after 3 skips, or when ``finished`` with nothing read at all)."""
+    fraction = skipped / max(1, skipped + done)
+    if (skipped >= 3 and fraction > max_fraction) or (finished and skipped and not done):
+        raise TrainingError(
+            f"Dataset {name!r}: {skipped} of {skipped + done} {what} batches could not be decoded, "
+            f"more than max-skip-fraction={max_fraction}."
+        )
 
 
 class FedProx:
@@ -183,7 +195,7 @@ class LocalTrainer:
             except Exception as err:  # a frame that fails to decode costs a batch, not the round
                 skipped += 1
                 logger.warning("Skipped an unreadable batch from {}: {}", self.split.entry.name, err)
-                self._check_skips(skipped, done)
+                check_skips(self.split.entry.name, "training", skipped, done, self.run.max_skip_fraction)
                 continue
             batch = self.bundle.preprocessor(prepare_batch(batch, cameras, task, self.bundle.device))
             tracker.dataloading_s = time.perf_counter() - t0
@@ -210,14 +222,6 @@ class LocalTrainer:
             **peak_memory(self.bundle.device),
         }
 
-    def _check_skips(self, skipped: int, done: int) -> None:
-        fraction = skipped / (skipped + done)
-        if skipped >= 3 and fraction > self.run.max_skip_fraction:
-            raise TrainingError(
-                f"Dataset {self.split.entry.name!r}: {skipped} of {skipped + done} batches could not be decoded, "
-                f"more than max-skip-fraction={self.run.max_skip_fraction}."
-            )
-
 
 def peak_memory(device: torch.device) -> dict[str, float]:
     """Peak GPU memory (GiB, 0 on CPU) and this process's resident host memory (GiB)."""
@@ -227,22 +231,35 @@ def peak_memory(device: torch.device) -> dict[str, float]:
 
 @torch.no_grad()
 def evaluate(
-    bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int
+    bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int, max_skip: float
 ) -> dict[str, float]:
     """Seeded flow-matching policy loss and action-chunk MSE (unnormalised units) on held-out frames,
-    and the seconds it took (what evaluation adds to a round)."""
+    and the seconds it took (what evaluation adds to a round).
+
+    A batch whose frames cannot be decoded is skipped and counted, as in training, until more than
+    ``max_skip`` (``max-skip-fraction``) of the batches were.
+    """
     started = time.perf_counter()
     policy = bundle.policy
     policy.eval()
-    losses, sq_err, counted, samples = [], 0.0, 0, 0
+    losses, sq_err, counted, samples, skipped = [], 0.0, 0, 0, 0
     autocast = (
         torch.autocast("cuda", dtype=torch.bfloat16)
         if bundle.device.type == "cuda" and torch.cuda.is_bf16_supported()
         else nullcontext()
     )
-    for index, batch in enumerate(loader):
-        if index >= max_batches:
+    batches = iter(loader)
+    while len(losses) < max_batches:
+        try:
+            batch = next(batches)
+        except StopIteration:
             break
+        except Exception as err:  # a frame that fails to decode costs a batch, not the evaluation
+            skipped += 1
+            logger.warning("Skipped an unreadable held-out batch of {}: {}", split.entry.name, err)
+            check_skips(split.entry.name, "held-out", skipped, len(losses), max_skip)
+            continue
+        index = len(losses)
         raw_action, is_pad = batch["action"].clone(), batch["action_is_pad"].clone()
         batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task, bundle.device))
         with torch.random.fork_rng(devices=[bundle.device] if bundle.device.type == "cuda" else []), autocast:
@@ -258,9 +275,11 @@ def evaluate(
         counted += int(valid.sum()) * raw_action.shape[-1]
         samples += len(raw_action)
     policy.train()
+    check_skips(split.entry.name, "held-out", skipped, len(losses), max_skip, finished=True)
     return {
         "policy-loss": sum(losses) / max(1, len(losses)),
         "action-mse": sq_err / max(1, counted),
         "num-examples": samples,
+        "skipped-batches": skipped,
         "eval-s": time.perf_counter() - started,
     }

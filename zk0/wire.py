@@ -15,7 +15,8 @@ from zk0.errors import Zk0Error
 
 # Names both ends use for the evaluation that rides on a train message (zk0.aggregation):
 EVALUATE_ROUND = "evaluate-round"  # train config: evaluate the received model (that round's) first
-EVALUATION = "evaluation"  # train reply: a ConfigRecord with that evaluation's metrics
+EVALUATION = "evaluation"  # train reply: a ConfigRecord with that evaluation's metrics, or its "error"
+SHAPE = "shape:"  # config: the global model's state/action sizes, e.g. "shape:action" = [6]
 
 
 def encode(tensors: dict[str, torch.Tensor], wire_dtype: str) -> ArrayRecord:
