@@ -122,21 +122,76 @@ if [ "$setup_only" = 1 ]; then
 fi
 
 # `flwr run` starts a local SuperLink in the background when none is running; stop the one
-# it starts for this run so nothing lingers after the script.
+# it starts for this run (and everything under it: the simulation, Ray) so nothing lingers.
 port="${FLWR_LOCAL_SUPERLINK_HTTP_API_PORT:-39091}"
-if ! pgrep -f "flower-superlink.*--port $port" >/dev/null; then
-    trap 'pkill -f "flower-superlink.*--port $port" || true' EXIT
-fi
+own_superlink=0
+pgrep -f "flower-superlink.*--port $port" >/dev/null || own_superlink=1
+stop_superlink() {
+    [ "$own_superlink" = 1 ] || return 0
+    local tree=() pid
+    for pid in $(pgrep -f "flower-superlink.*--port $port"); do tree+=("$pid" $(descendants "$pid")); done
+    [ ${#tree[@]} -gt 0 ] || return 0
+    kill "${tree[@]}" 2>/dev/null || true
+    for _ in $(seq 50); do kill -0 "${tree[@]}" 2>/dev/null || return 0; sleep 0.2; done
+    kill -9 "${tree[@]}" 2>/dev/null || true
+}
+descendants() {
+    local child
+    for child in $(pgrep -P "$1"); do echo "$child"; descendants "$child"; done
+}
+trap stop_superlink EXIT
+
+# Ctrl-C (or SIGTERM) stops the run itself, not only this script: `flwr stop`, then the
+# private SuperLink; what the run wrote stays, and the command that continues it is printed.
+interrupted() {
+    trap - INT TERM
+    echo >&2
+    local run_id run_dir last again=() shown=""
+    run_id="$(grep -o 'Successfully started run [0-9]*' "$log" | grep -o '[0-9]*$' | head -n 1 || true)"
+    zk0_log "Stopping run ${run_id:-(not started yet)}..."
+    [ -z "$run_id" ] || flwr stop "$run_id" local >/dev/null 2>&1 || true
+    kill "$flwr_pid" 2>/dev/null || true
+    stop_superlink
+    run_dir="$(run_folder)"
+    rm -f "$log"
+    if [ -z "$run_dir" ]; then
+        zk0_log "Stopped before the run wrote anything."
+        exit 130
+    fi
+    last="$(ls -d "$run_dir"/models/checkpoint_round_*/model.safetensors 2>/dev/null | sort -V | tail -n 1 || true)"
+    zk0_log "Stopped. Everything written so far is in $run_dir"
+    if [ -z "$last" ]; then
+        zk0_log "No checkpoint was complete yet, so there is nothing to resume; start again with ./train.sh."
+        exit 130
+    fi
+    zk0_log "Last complete checkpoint: $(dirname "$last"). Continue the run with:"
+    for ((i = 0; i < ${#inner[@]}; i++)); do
+        if [ "${inner[$i]}" = --resume ]; then i=$((i + 1)); else again+=("${inner[$i]}"); fi
+    done
+    [ ${#again[@]} -eq 0 ] || shown="$(printf ' %q' "${again[@]}")"
+    printf '  ./train.sh%s --resume %q\n' "$shown" "$run_dir" >&2
+    exit 130
+}
+
+# The run's folder, as the ServerApp names it in the log ("Writing to ...", "Resuming ... after").
+run_folder() {
+    sed -n -e 's/.* - Writing to \(.*\)$/\1/p' -e 's/.* - Resuming \(.*\) after round .*/\1/p' "$log" | head -n 1
+}
 
 zk0_log "Starting the federation (mode: $mode)..."
 log="$(mktemp)"
-"${flwr_command[@]}" 2>&1 | tee "$log"
+# In the background, so that a signal reaches `interrupted` at once instead of after the run.
+"${flwr_command[@]}" > >(tee "$log") 2>&1 &
+flwr_pid=$!
+trap interrupted INT TERM
+wait "$flwr_pid" || true
+trap - INT TERM
 # `flwr run --stream` exits 0 even when the ServerApp fails; Flower prints an exit code then.
 if grep -q "Exit Code: [1-9]" "$log"; then
     rm -f "$log"
     zk0_log "The federation failed; the reason is in the log above."
     exit 1
 fi
+outputs="$(run_folder)"
 rm -f "$log"
-latest="$(ls -td "$ZK0_ROOT"/outputs/*/ 2>/dev/null | head -n 1)"
-zk0_log "Outputs: ${latest:-none written (see the log above)}"
+zk0_log "Outputs: ${outputs:-none written (see the log above)}"

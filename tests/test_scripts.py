@@ -83,3 +83,54 @@ def test_flower_packs_the_app_without_walking_the_linked_venv(tmp_path):
     (app / "pyproject.toml").write_text("")
     (app / ".venv").symlink_to(home)
     assert set(collect_files(app)) == {"pyproject.toml"}
+
+
+def test_ctrl_c_stops_the_run_and_prints_the_command_that_continues_it(tmp_path):
+    """SIGINT to ./train.sh during round 2 of 4: no later round, no process of the run left, and
+    the printed --resume command finishes the run."""
+    import json
+    import shlex
+    import signal
+    import time
+
+    import psutil
+
+    from zk0.simulation import free_port, superlink_tree
+
+    out = tmp_path / "outputs"
+    env = {
+        **os.environ,
+        "FLWR_HOME": str(tmp_path / "flwr"),
+        "FLWR_LOCAL_SUPERLINK_HTTP_API_PORT": str(free_port()),
+        "FLWR_LOCAL_CONTROL_API_PORT": str(free_port()),
+    }
+    overrides = (
+        f"num-server-rounds=4 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1 output-dir='{out}'"
+    )
+    first = subprocess.Popen(
+        [TRAIN, "-r", overrides], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    deadline = time.monotonic() + 600
+    while not list(out.glob("*/models/checkpoint_round_1")):
+        assert first.poll() is None and time.monotonic() < deadline, first.stdout.read()[-3000:]
+        time.sleep(0.2)
+    run_processes = superlink_tree(env)
+    assert run_processes, "the run's SuperLink and simulation are running"
+    first.send_signal(signal.SIGINT)
+    printed, _ = first.communicate(timeout=180)
+    assert first.returncode == 130, printed[-3000:]
+    time.sleep(3)
+    (run_dir,) = out.iterdir()
+    assert not (run_dir / "server" / "round_3.json").exists(), "no round after the interrupted one"
+    assert not [p.pid for p in run_processes if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert f"Last complete checkpoint: {run_dir}/models/checkpoint_round_" in printed
+    (command,) = [line.strip() for line in printed.splitlines() if line.startswith("  ./train.sh")]
+    assert shlex.split(command) == ["./train.sh", "-r", overrides, "--resume", str(run_dir)]
+
+    second = subprocess.run(
+        shlex.split(command), cwd=PROJECT_ROOT, env=env, capture_output=True, text=True, timeout=600, check=False
+    )
+    assert second.returncode == 0, second.stderr[-3000:]
+    history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    assert [r["round"] for r in history["rounds"]] == [0, 1, 2, 3, 4]
+    assert (run_dir / "models" / "checkpoint_round_4" / "model.safetensors").is_file()
