@@ -219,3 +219,28 @@ def test_evaluation_past_max_skip_fraction_fails_in_one_sentence(good, tmp_path)
     assert str(failed.value) == (
         "Dataset 'damaged': 3 of 7 held-out batches could not be decoded, more than max-skip-fraction=0.1."
     )
+
+
+def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkpoint(good, tmp_path):
+    """The real `flwr run`: one sentence per bad dataset, no traceback, exit code, nothing written."""
+    from zk0.simulation import cpu_federation, flwr_run, local_federation
+
+    seven = write_dataset(tmp_path / "seven", joints=7)
+    empty = copy_of(good, tmp_path)
+    video = next((empty / "videos").rglob("*.mp4"))
+    video.write_bytes(b"")
+    registry_file = tmp_path / "registry.toml"
+    registry_file.write_text(
+        SERVER
+        + f'[tool.zk0.datasets.owner]\nrepo_id = "someone/seven"\nroot = "{seven}"\ncameras = {{ front = "camera1" }}\n'
+        + f'[tool.zk0.datasets.other]\nrepo_id = "someone/copy"\nroot = "{empty}"\ncameras = {{ front = "camera1" }}\n'
+    )
+    out = tmp_path / "outputs"
+    with local_federation(tmp_path / "flwr-home") as env:
+        log = flwr_run(env, f"registry='{registry_file}' output-dir='{out}'", cpu_federation(2, actors=1))
+    first = EXPECTED["seven-joints"]
+    second = EXPECTED["empty-video"].format(root=empty).replace("'owner'", "'other'")
+    assert log.count(f"zk0: {first}") == 1 and log.count(f"zk0: {second}") == 1, log[-4000:]
+    assert "Exit Code: " in log and "Done" not in log
+    assert "Traceback" not in log, log[-4000:]
+    assert not out.exists(), "nothing is written for a run that never starts"
