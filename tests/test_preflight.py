@@ -244,3 +244,34 @@ def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkp
     assert "Exit Code: " in log and "Done" not in log
     assert "Traceback" not in log, log[-4000:]
     assert not out.exists(), "nothing is written for a run that never starts"
+
+
+def test_a_first_round_that_cannot_train_stops_the_run_with_each_clients_sentence(good, tmp_path):
+    """Videos that pass every metadata check but cannot be decoded: every client's round fails,
+    so the run stops after round 1 with a non-zero exit, each sentence once, and no checkpoint."""
+    from zk0.simulation import cpu_federation, flwr_run, local_federation
+
+    entries = ""
+    for name in ("garbled-a", "garbled-b"):
+        root = Path(shutil.copytree(good, tmp_path / name))
+        for video in (root / "videos").rglob("*.mp4"):
+            video.write_bytes(np.random.default_rng(2).integers(0, 255, video.stat().st_size, np.uint8).tobytes())
+        entries += f'[tool.zk0.datasets.{name}]\nrepo_id = "someone/{name}"\nroot = "{root}"\ncameras = {{ front = "camera1" }}\n'
+    registry_file = tmp_path / "registry.toml"
+    registry_file.write_text(SERVER + entries)
+    out = tmp_path / "outputs"
+    with local_federation(tmp_path / "flwr-home") as env:
+        log = flwr_run(env, f"registry='{registry_file}' output-dir='{out}'", cpu_federation(2, actors=1))
+    for index, name in enumerate(("garbled-a", "garbled-b")):
+        sentence = (
+            f"Round 1: Client {index} ({name}): Dataset '{name}': 3 of 3 training batches could not be decoded, "
+            "more than max-skip-fraction=0.1."
+        )
+        assert log.count(sentence) == 1, log[-4000:]
+    stop = "zk0: Round 1 got 0 usable update(s), fewer than min-train-clients=2, so this run cannot train"
+    assert log.count(stop) == 1 and "Exit Code: " in log and "Done" not in log
+    assert "Traceback" not in log, log[-4000:]
+    (run_dir,) = out.iterdir()
+    assert not (run_dir / "models").exists(), "no checkpoint of an untrained model"
+    server_log = (run_dir / "server" / "server.log").read_text()
+    assert stop.removeprefix("zk0: ") in server_log and "Traceback" in server_log, "the traceback is kept, in the file"
