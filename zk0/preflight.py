@@ -180,11 +180,12 @@ def check_federation(run: RunConfig, registry: Registry, clients: bool = True, s
     """
     report = Report()
     server = registry.get(run.server_eval_dataset)
-    inputs = model_inputs(run, registry.model_cameras())
+    inputs = None  # a pretrained model's config is opened only when a dataset here needs it
     for entry in [server, *registry.clients] if clients else [server]:
         if skip_absent and not on_this_machine(entry):
             report.skipped.append(entry.name)
             continue
+        inputs = inputs or model_inputs(run, registry.model_cameras())
         try:
             meta = check_dataset(entry, inputs, None if entry is server else run.eval_episodes)
         except DataError as err:
