@@ -14,6 +14,7 @@ from zk0.assets import default_cache_root
 from zk0.config import RunConfig
 from zk0.data import _make, open_metadata
 from zk0.frames import attach_frame_cache, cache_key
+from zk0.internals import video_query
 from zk0.policy import build_policy
 
 DECODE_EVERY_BATCH = RunConfig(frame_cache_gb=0)
@@ -39,7 +40,7 @@ def test_cached_samples_equal_lerobots_decoded_samples(registry, policy_cfg, mon
     entry = registry.clients[0]
     decoded = _make(entry, policy_cfg, DECODE_EVERY_BATCH, None)
     cached = _make(entry, policy_cfg, RunConfig(), None)
-    cache = cached.reader._query_videos.func.__self__
+    cache = video_query(cached).func.__self__  # the FrameCache serving the dataset
     assert len(cache.stored) == len(decoded.meta.camera_keys) * decoded.num_episodes
     assert cache.directory.is_relative_to(default_cache_root() / "frames")
     in_worker = pickle.loads(pickle.dumps(cached))  # what a spawned DataLoader worker receives

@@ -23,7 +23,6 @@ import os
 import shutil
 import time
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +32,8 @@ from lerobot.datasets.dataset_reader import DatasetReader
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.datasets.video_utils import decode_video_frames
 from loguru import logger
+
+from zk0.internals import decode_videos, returns_uint8, serve_videos_from
 
 DECODE_CHUNK = 256  # frames decoded per call while building: bounds the builder's memory
 FREE_DISK_MARGIN = 1e9  # bytes left free on the cache's disk after building
@@ -71,7 +72,7 @@ class FrameCache:
         found = {key: self.frames(ep_idx, key, ts) for key, ts in query_timestamps.items()}
         missing = {key: query_timestamps[key] for key, frames in found.items() if frames is None}
         if missing:
-            found.update(DatasetReader._query_videos(reader, missing, ep_idx))
+            found.update(decode_videos(reader, missing, ep_idx))
         return found
 
 
@@ -150,7 +151,7 @@ def attach_frame_cache(
     directory.mkdir(parents=True, exist_ok=True)
     cache = FrameCache(
         directory, {ep: dict(zip(ts.tolist(), range(len(ts)), strict=True)) for ep, ts in rows.items()},
-        dataset.reader._return_uint8,
+        returns_uint8(dataset),
     )  # fmt: skip
     with FileLock(str(directory / ".lock")):
         cache.stored = {(ep, cam) for ep in rows for cam in cameras if cache.path(ep, cam).exists()}
@@ -178,5 +179,5 @@ def attach_frame_cache(
             "Dataset {!r}: decoded {} episode videos into the frame cache under {} in {:.1f} s.",
             name, built, directory, time.perf_counter() - started,
         )  # fmt: skip
-    dataset.reader._query_videos = partial(cache.query_videos, dataset.reader)
+    serve_videos_from(dataset, cache.query_videos)
     return cache

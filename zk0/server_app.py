@@ -15,7 +15,6 @@ from pathlib import Path
 
 from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord, RecordDict
 from flwr.serverapp import Grid, ServerApp
-from flwr.superlink.grid import InMemoryGrid
 from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.policies import make_pre_post_processors
@@ -29,6 +28,7 @@ from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
 from zk0.hub import can_push, publish
+from zk0.internals import is_simulation
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
 from zk0.preflight import SIZED, check_federation
@@ -161,7 +161,7 @@ def main(grid: Grid, context: Context) -> None:
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)
         resumed = find_resume_point(run.resume_from) if run.resume_from else None
-        meta = preflight(run, registry, simulation=isinstance(grid, InMemoryGrid))
+        meta = preflight(run, registry, simulation=is_simulation(grid))
         run_dir = resumed.run_dir if resumed else new_run_dir(run.output_dir)
     except Zk0Error as err:
         logger.error("zk0: {}", err)  # the one sentence, before Flower's own report of the failure

@@ -30,6 +30,7 @@ from torch.utils.data import DataLoader
 from zk0.config import RunConfig
 from zk0.data import DatasetSplit, prepare_batch
 from zk0.errors import Zk0Error
+from zk0.internals import set_last_lr
 from zk0.policy import PolicyBundle
 
 
@@ -111,7 +112,7 @@ def set_schedule_step(scheduler, global_step: int) -> None:
     lrs = [base * fn(global_step) for base, fn in zip(scheduler.base_lrs, scheduler.lr_lambdas, strict=True)]
     for group, lr in zip(scheduler.optimizer.param_groups, lrs, strict=True):
         group["lr"] = lr
-    scheduler._last_lr = lrs
+    set_last_lr(scheduler, lrs)
 
 
 @dataclass
