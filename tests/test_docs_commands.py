@@ -4,8 +4,9 @@ Commands are read from the ```bash blocks (with backslash continuations joined).
 cheapest way that still exercises it: ``zk0 certs`` for real, ``zk0 superlink``/``supernode``
 with ``--dry-run`` in a folder holding those certificates (also when the docs run them inside
 the Docker image), ``./train.sh`` with ``--print``, ``flwr run``'s run config through
-``zk0 check``, benchmarks with ``--help``. A command this test does not know fails it, so a new
-documented command cannot go unexercised.
+``zk0 check``, benchmarks with ``--help``, ``lerobot-rollout`` through its own entry point up to
+where it would load the weights and connect the robot. A command this test does not know fails
+it, so a new documented command cannot go unexercised.
 """
 
 from __future__ import annotations
@@ -28,13 +29,29 @@ ELSEWHERE = {
     "docker build": "no Docker engine here; the Dockerfile is linted by tests/test_scripts.py",
     "./test.sh": "the test command itself",
     "source scripts/setup.sh": "what ./train.sh and ./test.sh run first",
-    "lerobot-record": "needs a robot; loading the checkpoint and predicting with it is tested in tests/test_federation.py",
     "cd ": "moves into the clone",
     "git clone": "needs the network",
     "tmux ": "attaching to a detached run",
     "tail -f": "following a log",
     "export ": "sets an environment variable for the commands after it",
 }
+
+
+# lerobot-rollout's console-script entry point (lerobot.scripts.lerobot_rollout:main): plugin
+# registration, then lerobot's parser over RolloutConfig, whose __post_init__ reads the policy config
+# named by --policy.path. It stops where build_rollout_context would load the weights and connect
+# the robot; tests/test_rollout.py runs that part on a zk0 checkpoint with a synthetic SO-101.
+ROLLOUT_UNTIL_ROBOT = """
+import sys
+import lerobot.scripts.lerobot_rollout as cli
+
+def build_rollout_context(cfg, shutdown_event):
+    print(f"{cfg.strategy.type} rollout of {cfg.policy.type} from {cfg.policy.pretrained_path} on {cfg.robot.port}")
+    sys.exit(0)
+
+cli.build_rollout_context = build_rollout_context
+cli.main()
+"""
 
 
 def documented_commands() -> list[tuple[str, str]]:
@@ -65,6 +82,27 @@ def zk0(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run([str(BIN / "zk0"), *args], cwd=cwd, capture_output=True, text=True, timeout=120, check=False)
 
 
+def checkpoint_config(path: Path) -> None:
+    """The config.json of a zk0 checkpoint (SmolVLA, cameras camera1 and camera2, 6 joints) at ``path``.
+
+    It is all lerobot-rollout reads before loading the weights.
+    """
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    image = PolicyFeature(type=FeatureType.VISUAL, shape=(3, 480, 640))
+    SmolVLAConfig(
+        input_features={
+            "observation.images.camera1": image,
+            "observation.images.camera2": image,
+            "observation.state": PolicyFeature(type=FeatureType.STATE, shape=(6,)),
+        },
+        output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(6,))},
+        device="cpu",
+        push_to_hub=False,
+    ).save_pretrained(path)
+
+
 def inner_command(tokens: list[str]) -> list[str]:
     """What ``docker run ... zk0 <command>`` runs inside the image."""
     image = next(i for i, token in enumerate(tokens) if token == "zk0" and i + 1 < len(tokens))
@@ -89,6 +127,11 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
         config = tokens[tokens.index("--run-config") + 1] if "--run-config" in tokens else ""
         option = ["--preset", str(PROJECT_ROOT / config)] if config.endswith(".toml") else ["--run-config", config]
         return zk0("check", *option, cwd=PROJECT_ROOT)
+    if tokens[0] == "lerobot-rollout":
+        policy = next(token.split("=", 1)[1] for token in tokens if token.startswith("--policy.path="))
+        checkpoint_config(workspace / policy)  # the run folder's checkpoint the example names
+        command = [sys.executable, "-c", ROLLOUT_UNTIL_ROBOT, *tokens[1:]]
+        return subprocess.run(command, cwd=workspace, capture_output=True, text=True, timeout=300, check=False)
     if tokens[:3] == ["python", "-m", "zk0.bench"]:
         command = [sys.executable, "-m", "zk0.bench", tokens[3], "--help"]
         return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
@@ -106,5 +149,13 @@ def test_documented_command_runs(doc, command, workspace):
 def test_the_docs_show_the_deployment_commands():
     """The scan finds what matters (a broken regex must not turn this file into a no-op)."""
     text = " ".join(command for _, command in COMMANDS)
-    for expected in ("zk0 certs", "zk0 superlink", "zk0 supernode", "./train.sh", "flwr run", "docker run"):
+    for expected in (
+        "zk0 certs",
+        "zk0 superlink",
+        "zk0 supernode",
+        "./train.sh",
+        "flwr run",
+        "docker run",
+        "lerobot-rollout",
+    ):
         assert expected in text, expected

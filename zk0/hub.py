@@ -67,13 +67,16 @@ statistics are in `client_stats/` for robot owners who want to normalise with th
 ## Run it on an SO-100/SO-101 arm
 
 ```bash
-pip install "lerobot[smolvla]"
-lerobot-record \\
-  --robot.type=so101_follower --robot.port=/dev/ttyACM0 \\
+pip install "lerobot[feetech,smolvla]==0.6.1"
+lerobot-rollout --strategy.type=base \\
+  --robot.type=so101_follower --robot.port=/dev/ttyACM0 --robot.id=my_arm \\
   --robot.cameras="{{ camera1: {{type: opencv, index_or_path: 0, width: 640, height: 480, fps: 30}} }}" \\
-  --dataset.repo_id=<you>/eval_{model_name} --dataset.single_task="<your task>" \\
+  --task="<your task>" --duration=60 \\
   --policy.path={repo_id}
 ```
+
+`--strategy.type=episodic --dataset.repo_id=<you>/rollout_{model_name} --dataset.single_task="<your task>"`
+records evaluation episodes instead.
 
 Name your cameras after the model's inputs (`camera1`, `camera2`, ...) or pass lerobot's
 `--rename_map` from your camera names to `observation.images.cameraN`.
