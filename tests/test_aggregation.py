@@ -25,13 +25,27 @@ def reply(node: int, record: ArrayRecord, examples: int) -> Message:
         dst_node_id=node,
         message_type=MessageType.TRAIN,
     )
-    metrics = MetricRecord({"num-examples": examples, "train-loss": float(node), "dataset-index": node})
-    return Message(content=RecordDict({"arrays": record, "metrics": metrics}), reply_to=instruction)
+    metrics = MetricRecord({"num-examples": examples, "train-loss": float(node)})
+    client = ConfigRecord({"index": node, "dataset": f"d{node}"})
+    return Message(content=RecordDict({"arrays": record, "metrics": metrics, "client": client}), reply_to=instruction)
 
 
 def failed(node: int) -> Message:
     instruction = Message(content=RecordDict({}), dst_node_id=node, message_type=MessageType.TRAIN)
     return Message(Error(code=0, reason="client crashed"), reply_to=instruction)
+
+
+class Recorder:
+    """The strategy's observer, keeping what it is told."""
+
+    def __init__(self, recorded: list):
+        self.recorded = recorded
+
+    def record_clients(self, phase, rnd, replies, aggregate, failures):
+        self.recorded.append((phase, rnd, len(replies), aggregate, failures))
+
+    def round_ended(self, rnd, arrays, evaluation):
+        self.recorded.append(("ended", rnd, evaluation))
 
 
 @pytest.fixture
@@ -40,7 +54,7 @@ def strategy():
     strat = ValidatingFedProx(
         expected=array_signature(arrays(0.0)),
         evaluates_in=lambda rnd: rnd % 2 == 0,
-        recorder=lambda phase, rnd, replies, agg, failed: recorded.append((phase, rnd, len(replies), agg, failed)),
+        observer=Recorder(recorded),
         last_round=4,
         proximal_mu=0.01,
         min_train_nodes=2,
@@ -127,7 +141,7 @@ def test_client_evaluation_rides_on_the_next_train_message_and_only_the_last_rou
 def test_evaluations_carried_by_train_replies_are_recorded_for_the_round_they_evaluate(strategy):
     replies = [reply(1, arrays(1.0), 10), reply(2, arrays(3.0), 30)]
     for msg, mse in zip(replies, (1.0, 5.0), strict=True):
-        msg.content["evaluation"] = ConfigRecord({"action-mse": mse, "num-examples": 4 * mse, "dataset-index": 0})
+        msg.content["evaluation"] = ConfigRecord({"action-mse": mse, "num-examples": 4 * mse})
     strategy.aggregate_train(3, replies)
     phase, evaluated, count, aggregate, failures = strategy.recorded[0]
     assert (phase, evaluated, count, failures) == ("evaluate", 2, 2, {})
@@ -137,9 +151,9 @@ def test_evaluations_carried_by_train_replies_are_recorded_for_the_round_they_ev
 
 def test_a_failed_client_evaluation_is_recorded_with_its_reason_and_training_still_counts(strategy):
     replies = [reply(1, arrays(1.0), 10), reply(2, arrays(3.0), 30)]
-    replies[0].content["evaluation"] = ConfigRecord({"action-mse": 2.0, "num-examples": 8, "dataset-index": 1})
+    replies[0].content["evaluation"] = ConfigRecord({"action-mse": 2.0, "num-examples": 8})
     reason = "Client 2 (b): Dataset 'b': 3 of 3 held-out batches could not be decoded, more than max-skip-fraction=0.1."
-    replies[1].content["evaluation"] = ConfigRecord({"error": reason, "dataset-index": 2})
+    replies[1].content["evaluation"] = ConfigRecord({"error": reason})
     result, _ = strategy.aggregate_train(3, replies)
     assert result is not None
     phase, evaluated, count, aggregate, failures = strategy.recorded[0]

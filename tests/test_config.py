@@ -40,6 +40,9 @@ def test_local_epochs_is_an_alias_of_local_steps():
         ({"fraction-evaluate": 1.5}, ["'fraction-evaluate'", "<= 1"]),
         ({"lr": -1e-4}, ["'lr'", "-0.0001"]),
         ({"device": "tpu"}, ["'device'", "'tpu'"]),
+        ({"device": "auto:1"}, ["'device'", "'auto:1'", "cuda:N"]),
+        ({"device": "cuda:x"}, ["'device'", "'cuda:x'"]),
+        ({"phase-timeout": 0}, ["'phase-timeout'", "> 0"]),
         ({"frame-cache-gb": -1}, ["'frame-cache-gb'", "-1.0", ">= 0"]),
     ],
 )
@@ -54,6 +57,12 @@ def test_bad_values_fail_with_one_sentence(overrides, needles):
 def test_evaluation_schedule():
     cfg = dataclasses.replace(RunConfig(), num_server_rounds=5, eval_frequency=2)
     assert [r for r in range(1, 6) if cfg.evaluates_in(r)] == [2, 4, 5]
+
+
+def test_checkpoint_schedule_keeps_every_interval_and_the_last_round():
+    cfg = dataclasses.replace(RunConfig(), num_server_rounds=7, checkpoint_interval=3)
+    assert [r for r in range(8) if cfg.checkpoints_in(r)] == [3, 6, 7]
+    assert from_run_config({"device": "cuda:1"}).device == "cuda:1"
 
 
 def test_an_output_dir_that_cannot_be_created_is_named(tmp_path):

@@ -18,6 +18,8 @@ import pytest
 from zk0.loopback import LoopbackFederation, loopback_federation, tool
 from zk0.registry import PROJECT_ROOT
 
+pytestmark = pytest.mark.deployment
+
 ROBOTS = {"robot-1": "synth-so100-pickplace", "robot-2": "synth-so100-stacking"}
 MARKER = "Opened (submitted copy)"
 

@@ -19,6 +19,8 @@ from zk0.policy import build_policy, get_trainable
 from zk0.registry import load_registry
 from zk0.simulation import cpu_federation, flwr_run, local_federation
 
+pytestmark = pytest.mark.e2e
+
 # Two clients served by one Ray actor: which actor runs a node's message is up to Ray, so one
 # actor makes "each client builds its policy once per run" exact.
 ONE_ACTOR = cpu_federation(num_supernodes=2, actors=1)

@@ -221,6 +221,7 @@ def test_evaluation_past_max_skip_fraction_fails_in_one_sentence(good, tmp_path)
     )
 
 
+@pytest.mark.e2e
 def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkpoint(good, tmp_path):
     """The real `flwr run`: one sentence per bad dataset, no traceback, exit code, nothing written."""
     from zk0.simulation import cpu_federation, flwr_run, local_federation
@@ -246,6 +247,7 @@ def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkp
     assert not out.exists(), "nothing is written for a run that never starts"
 
 
+@pytest.mark.e2e
 def test_a_first_round_that_cannot_train_stops_the_run_with_each_clients_sentence(good, tmp_path):
     """Videos that pass every metadata check but cannot be decoded: every client's round fails,
     so the run stops after round 1 with a non-zero exit, each sentence once, and no checkpoint."""

@@ -79,6 +79,7 @@ def flwr(env: dict, run_config: str) -> subprocess.Popen:
     )
 
 
+@pytest.mark.e2e
 def test_resume_after_sigkill_finishes_every_round_once(tmp_path, hub_home):
     home, registry = hub_home
     out = tmp_path / "outputs"

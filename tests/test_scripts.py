@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from zk0.registry import PROJECT_ROOT
 
 TRAIN = str(PROJECT_ROOT / "train.sh")
@@ -85,6 +87,7 @@ def test_flower_packs_the_app_without_walking_the_linked_venv(tmp_path):
     assert set(collect_files(app)) == {"pyproject.toml"}
 
 
+@pytest.mark.e2e
 def test_ctrl_c_stops_the_run_and_prints_the_command_that_continues_it(tmp_path):
     """SIGINT to ./train.sh during round 2 of 4: no later round, no process of the run left, and
     the printed --resume command finishes the run."""

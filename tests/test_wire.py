@@ -27,18 +27,15 @@ def test_a_mismatched_dtype_is_named():
         decode(encode({"w": torch.ones(2)}, "float32"), "bfloat16")
 
 
-def test_fedavg_averages_decoded_values():
-    from flwr.supercore.task_identity import TaskIdentity
-
-    from tests.test_aggregation import reply
+def test_fedavg_averages_decoded_values(flower_task):
+    from tests.test_aggregation import Recorder, reply
     from zk0.aggregation import ValidatingFedProx, array_signature
 
-    TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 1, 1, 0
     template = {"a": torch.zeros(2, 3), "b": torch.zeros(4)}
     strategy = ValidatingFedProx(
         expected=array_signature(encode(template, "float32")),
         evaluates_in=lambda _: True,
-        recorder=lambda *_: None,
+        observer=Recorder([]),
         last_round=1,
         wire_dtype="bfloat16",
         min_train_nodes=2,

@@ -5,7 +5,7 @@ plus ``proximal-mu`` in the train config). These overrides only add what a feder
 of robot owners needs: replies whose arrays are non-finite or do not match the global
 model's names/shapes/dtypes are rejected and logged, not averaged; federated evaluation
 runs every ``eval-frequency`` rounds; and each client's own metrics and dataset
-statistics are handed to a recorder so the server can write them out.
+statistics, and the end of every round, go to an observer (zk0.round_artifacts) that writes them.
 
 Federated evaluation rides on the next round's train message: the model a client receives
 for round N+1 is the one round N produced, so it evaluates that first and reports it as round
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import random
 from collections.abc import Callable, Iterable
+from typing import Protocol
 
 import numpy as np
 from flwr.app import ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
@@ -26,10 +27,24 @@ from flwr.serverapp.strategy import FedProx
 from loguru import logger
 
 from zk0.errors import REFUSED, Zk0Error
-from zk0.wire import EVALUATE_ROUND, EVALUATION, decode, encode
+from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, decode, encode
 
-# (phase, round, the reply contents that counted, their weighted aggregate, failed clients' reasons by index)
-ClientRecorder = Callable[[str, int, list[RecordDict], MetricRecord | None, dict[int, str]], None]
+
+class RoundObserver(Protocol):
+    """Who keeps the rounds (zk0.round_artifacts.RoundArtifacts)."""
+
+    def record_clients(
+        self,
+        phase: str,
+        server_round: int,
+        replies: list[RecordDict],
+        aggregate: MetricRecord | None,
+        failures: dict[int, str],
+    ) -> None:
+        """A phase's replies that counted, their weighted aggregate, failed clients' reasons by index."""
+
+    def round_ended(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
+        """The round is over: ``arrays`` is the global model, ``evaluation`` the server's of it."""
 
 
 class RunCannotTrain(Zk0Error):
@@ -64,7 +79,7 @@ class ValidatingFedProx(FedProx):
         *,
         expected: dict[str, tuple[tuple[int, ...], str]],
         evaluates_in: Callable[[int], bool],
-        recorder: ClientRecorder,
+        observer: RoundObserver,
         last_round: int,
         round_offset: int = 0,
         wire_dtype: str = "float32",
@@ -74,11 +89,26 @@ class ValidatingFedProx(FedProx):
         self.expected = expected
         self.wire_dtype = wire_dtype  # the global model is kept in fp32; messages carry this dtype
         self.evaluates_in = evaluates_in
-        self.recorder = recorder
+        self.observer = observer
         self.last_round = last_round  # of the whole run, resumed rounds included
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
+
+    def start(self, *, evaluate_fn: Callable[[int, ArrayRecord], MetricRecord | None] | None = None, **kwargs):
+        """Flower's round loop, run as it is. ``evaluate_fn`` (the server's evaluation, the last step
+        of Flower's round) gets the run's round numbers, and after it the observer is told the
+        round ended; a resumed run's round 0 is its last checkpoint, evaluated and kept before."""
+
+        def evaluate_and_end_round(flower_round: int, arrays: ArrayRecord) -> MetricRecord | None:
+            if flower_round == 0 and self.round_offset:
+                return None
+            server_round = flower_round + self.round_offset
+            evaluation = evaluate_fn(server_round, arrays) if evaluate_fn else None
+            self.observer.round_ended(server_round, arrays, evaluation)
+            return evaluation
+
+        return super().start(evaluate_fn=evaluate_and_end_round, **kwargs)
 
     def configure_train(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
@@ -131,9 +161,8 @@ class ValidatingFedProx(FedProx):
                 )
                 continue
             valid.append(msg)
-            metrics = next(iter(msg.content.metric_records.values()), {})
-            if "dataset-index" in metrics:
-                self.node_clients[msg.metadata.src_node_id] = int(metrics["dataset-index"])
+            if CLIENT in msg.content:
+                self.node_clients[msg.metadata.src_node_id] = int(msg.content[CLIENT]["index"])
         return valid
 
     @staticmethod
@@ -164,25 +193,28 @@ class ValidatingFedProx(FedProx):
                 len(valid),
                 self.min_train_nodes,
             )
-            self.recorder("train", server_round, [m.content for m in valid], None, {})
+            self.observer.record_clients("train", server_round, [m.content for m in valid], None, {})
             return None, None
         arrays, metrics = super().aggregate_train(server_round, valid)
-        self.recorder("train", server_round, [m.content for m in valid], metrics, {})
+        self.observer.record_clients("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
 
     def _record_evaluation(self, evaluated_round: int, replies: list[Message]) -> None:
         """The evaluations that train replies carry: the clients' metrics for ``evaluated_round``, or
         why a client's evaluation failed (its training may still have counted)."""
-        evaluations = [dict(msg.content[EVALUATION]) for msg in replies if EVALUATION in msg.content]
-        failures = {int(e["dataset-index"]): str(e["error"]) for e in evaluations if "error" in e}
-        contents = [RecordDict({"metrics": MetricRecord(e)}) for e in evaluations if "error" not in e]
+        carried = [(msg.content[CLIENT], dict(msg.content[EVALUATION])) for msg in replies if EVALUATION in msg.content]
+        failures = {int(client["index"]): str(e["error"]) for client, e in carried if "error" in e}
+        contents = [
+            RecordDict({"metrics": MetricRecord(e), CLIENT: client}) for client, e in carried if "error" not in e
+        ]
+        evaluations = [e for _, e in carried]
         aggregate = self.evaluate_metrics_aggr_fn(contents, self.weighted_by_key) if contents else None
         if contents:
             logger.info(
                 "Round {} client evaluation (sent with round {}): {}", evaluated_round, evaluated_round + 1, aggregate
             )
         if evaluations:
-            self.recorder("evaluate", evaluated_round, contents, aggregate, failures)
+            self.observer.record_clients("evaluate", evaluated_round, contents, aggregate, failures)
 
     def configure_evaluate(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
@@ -206,5 +238,5 @@ class ValidatingFedProx(FedProx):
                 failures[client] = msg.error.reason
         answered = [m for m in replies if not m.has_error()]  # the failures are logged once, above
         metrics = super().aggregate_evaluate(server_round, answered) if answered else None
-        self.recorder("evaluate", server_round, [m.content for m in answered], metrics, failures)
+        self.observer.record_clients("evaluate", server_round, [m.content for m in answered], metrics, failures)
         return metrics

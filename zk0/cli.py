@@ -17,7 +17,7 @@ from zk0.assets.datasets import SPECS
 from zk0.certs import make_federation_certs
 from zk0.config import from_run_config
 from zk0.deploy import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
-from zk0.errors import Zk0Error
+from zk0.errors import OneSentenceParser, Zk0Error
 from zk0.registry import PROJECT_ROOT, load_registry
 
 
@@ -149,8 +149,8 @@ def run_command(command: list[str], dry_run: bool) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="zk0", description="zk0: federated SmolVLA for SO-100/SO-101 arms.")
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = OneSentenceParser(prog="zk0", description="zk0: federated SmolVLA for SO-100/SO-101 arms.")
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=OneSentenceParser)
     assets = commands.add_parser("assets", help="generate the offline datasets and tiny backbone, print their paths")
     assets.add_argument("--cache-dir", help="cache root (default: $ZK0_CACHE or ~/.cache/zk0)")
     assets.add_argument("--seed", type=int, default=0, help="generator seed (default 0, what runs use)")

@@ -37,7 +37,7 @@ from zk0.preflight import check_dataset, model_inputs
 from zk0.registry import DatasetEntry, Registry, load_registry
 from zk0.stats import stats_to_record
 from zk0.training import LocalTrainer, evaluate
-from zk0.wire import EVALUATE_ROUND, EVALUATION, SHAPE, decode, encode
+from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, SHAPE, decode, encode
 
 # What must outlive a one-message process, in the node's Context.state.
 OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
@@ -210,10 +210,10 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
                     **metrics,
                     "update-bytes": update.count_bytes(),
                     "evaluate-s": float(evaluation.get("eval-s", 0.0)) if evaluation else 0.0,
-                    "dataset-index": session.index,
                 }
             ),
             "stats": stats_to_record(session.bundle.stats),
+            CLIENT: identity(session),
         }
     )
     if evaluation:
@@ -229,7 +229,7 @@ def _evaluate_before_training(session: ClientSession, content: RecordDict) -> di
     except Zk0Error as err:
         reason = f"Client {session.index} ({session.split.entry.name}): {err}"
         logger.error("zk0: {}", reason)
-        return {"error": reason, "dataset-index": session.index}
+        return {"error": reason}
 
 
 def _evaluate(session: ClientSession, content: RecordDict) -> RecordDict:
@@ -239,7 +239,12 @@ def _evaluate(session: ClientSession, content: RecordDict) -> RecordDict:
     )
     evaluated = int(content["config"].get(EVALUATE_ROUND, content["config"]["server-round"]))
     logger.info("Round {} evaluate on {}: {}", evaluated, session.split.entry.name, metrics)
-    return RecordDict({"metrics": MetricRecord({**metrics, "dataset-index": session.index})})
+    return RecordDict({"metrics": MetricRecord(metrics), CLIENT: identity(session)})
+
+
+def identity(session: ClientSession) -> ConfigRecord:
+    """Who replies: the client's registry index and dataset (never averaged, unlike metrics)."""
+    return ConfigRecord({"index": session.index, "dataset": session.split.entry.name})
 
 
 def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: bool = True) -> RecordDict:

@@ -61,6 +61,7 @@ class RunConfig:
     resume_from: str = ""
     wire_dtype: str = "bfloat16"
     compile: bool = False  # lerobot's compile_model; zk0.policy keeps the compiled code in $ZK0_CACHE
+    phase_timeout: float = 3600.0  # seconds the server waits for a round's train (or evaluate) replies
 
     @property
     def total_steps(self) -> int:
@@ -70,6 +71,12 @@ class RunConfig:
     def evaluates_in(self, server_round: int) -> bool:
         """Evaluation runs every ``eval-frequency`` rounds and always after the last one."""
         return server_round % self.eval_frequency == 0 or server_round == self.num_server_rounds
+
+    def checkpoints_in(self, server_round: int) -> bool:
+        """A checkpoint every ``checkpoint-interval`` rounds and always after the last one."""
+        return server_round > 0 and (
+            server_round % self.checkpoint_interval == 0 or server_round == self.num_server_rounds
+        )
 
     def to_flat(self) -> dict[str, Any]:
         """The run-config form (kebab-case keys), e.g. for round JSON files."""
@@ -96,6 +103,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "tolerance_s": (0, None, True),
     "frame_cache_gb": (0, None, False),
     "max_skip_fraction": (0, 1, False),
+    "phase_timeout": (0, None, True),
 }
 
 
@@ -140,9 +148,9 @@ def _check_range(name: str, value: Any) -> None:
 
 
 def _check_choices(cfg: RunConfig) -> None:
-    if cfg.device.split(":")[0] not in DEVICES:
+    if cfg.device not in DEVICES and not re.fullmatch(r"cuda:\d+", cfg.device):
         raise ConfigError(
-            f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} (cuda:N allowed)."
+            f"Run-config key 'device' got {cfg.device!r}; expected one of {list(DEVICES)} or cuda:N (N a GPU index)."
         )
     if cfg.wire_dtype not in WIRE_DTYPES:
         raise ConfigError(f"Run-config key 'wire-dtype' got {cfg.wire_dtype!r}; expected one of {list(WIRE_DTYPES)}.")

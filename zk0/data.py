@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cache
 
 import torch
 from lerobot.configs import PreTrainedConfig
@@ -58,13 +59,16 @@ def open_metadata(entry: DatasetEntry) -> LeRobotDatasetMetadata:
     except OSError as err:  # Hub and file errors (offline, no such repo or revision, unreadable files)
         where = f"at {entry.root!r}" if entry.root else "on the Hugging Face Hub or in its cache (HF_LEROBOT_HOME)"
         raise DataError(
-            f"Dataset {entry.name!r} ({entry.repo_id}) cannot be opened {where}: {type(err).__name__}: {err}".rstrip(".")
+            f"Dataset {entry.name!r} ({entry.repo_id}) cannot be opened {where}: {type(err).__name__}: {err}".rstrip(
+                "."
+            )
             + "."
         ) from None
 
 
+@cache
 def video_backend(requested: str) -> str:
-    """The requested decoder, or PyAV (named in the log, no traceback) when torchcodec cannot load."""
+    """The requested decoder, or PyAV (one warning per process, no traceback) when torchcodec cannot load."""
     if requested != "torchcodec":
         return requested
     try:

@@ -1,40 +1,36 @@
 """zk0 ServerApp: FedProx over the trainable SmolVLA parameters, server evaluation, artifacts.
 
-The server builds the global policy exactly as clients do (same base, same seed) on
-its evaluation dataset, sends only the trainable arrays plus the backbone fingerprint,
-aggregates the clients' updates weighted by samples trained, and at the end of every
-round evaluates the global model (every ``eval-frequency`` rounds) and writes JSON,
-charts and, every ``checkpoint-interval`` rounds and after the last, a checkpoint.
+The server checks the datasets, builds the global policy exactly as clients do (same base,
+same seed) on its evaluation dataset, and runs Flower's round loop with ``ValidatingFedProx``:
+only the trainable arrays travel, updates are averaged by samples trained, Flower's
+``evaluate_fn`` (``ServerEvaluation``) evaluates the global model every ``eval-frequency``
+rounds, and ``RoundArtifacts`` (zk0.round_artifacts) writes what each round leaves.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
-from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord, RecordDict
+from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord
 from flwr.serverapp import Grid, ServerApp
-from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
-from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0 import app_fingerprint
 from zk0.aggregation import ValidatingFedProx, array_signature
-from zk0.artifacts import History, new_run_dir, save_checkpoint, write_json
+from zk0.artifacts import History, new_run_dir, write_json
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
-from zk0.hub import can_push, publish
 from zk0.internals import is_simulation
 from zk0.logs import add_file_sink, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
 from zk0.preflight import SIZED, check_federation
 from zk0.registry import Registry, load_registry
 from zk0.resume import ResumePoint, find_resume_point
-from zk0.stats import stats_from_record
+from zk0.round_artifacts import RoundArtifacts
 from zk0.tracking import Tracker
 from zk0.training import evaluate
 from zk0.wire import SHAPE
@@ -42,84 +38,22 @@ from zk0.wire import SHAPE
 app = ServerApp()
 
 
-class RoundEnd:
-    """Flower's ``evaluate_fn`` hook, the last step of every round: server eval, then artifacts."""
+class ServerEvaluation:
+    """Flower's ``evaluate_fn``: the global model's policy loss and action MSE on the server's own
+    held-out dataset, in the rounds the run evaluates (round 0 is the starting model)."""
 
-    def __init__(
-        self,
-        run: RunConfig,
-        registry: Registry,
-        bundle: PolicyBundle,
-        split: DatasetSplit,
-        history: History,
-        tracker: Tracker,
-        resumed: ResumePoint | None,
-    ):
-        self.run, self.registry, self.bundle, self.split = run, registry, bundle, split
-        self.history, self.tracker = history, tracker
-        self.push = can_push(run)
+    def __init__(self, run: RunConfig, bundle: PolicyBundle, split: DatasetSplit):
+        self.run, self.bundle, self.split = run, bundle, split
         self.loader = eval_loader(split.evaluation, run)
-        self.round_offset = resumed.round if resumed else 0
-        self.client_stats: dict[int, dict] = dict(resumed.client_stats) if resumed else {}
-        self.started = time.perf_counter()
-
-    def record_clients(
-        self,
-        phase: str,
-        server_round: int,
-        replies: list[RecordDict],
-        aggregate: MetricRecord | None,
-        failures: dict[int, str],
-    ) -> None:
-        """Keep each client's metrics (by dataset index, never node id), their aggregate, dataset
-        statistics, and why a client's reply failed (``failures``: dataset index -> reason)."""
-        for index, reason in failures.items():
-            self.history.add_client(server_round, phase, index, {"error": reason})
-        if aggregate:
-            summary = {k: v for k, v in aggregate.items() if k != "dataset-index"}
-            self.history.add(server_round, f"aggregate-{phase}", summary)
-        for content in replies:
-            metrics = dict(content["metrics"])
-            index = int(metrics.pop("dataset-index"))
-            self.history.add_client(server_round, phase, index, metrics)
-            if "stats" in content:
-                self.client_stats[index] = stats_from_record(content["stats"])
 
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
-        if server_round == 0 and self.round_offset:
-            return None  # a resumed run's starting model is its last checkpoint, already evaluated
-        server_round += self.round_offset
+        if server_round and not self.run.evaluates_in(server_round):
+            return None
         set_trainable(self.bundle, arrays)
-        self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
-        metrics = None
-        if server_round == 0 or self.run.evaluates_in(server_round):
-            run = self.run
-            metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
-            logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
-            self.history.add(server_round, "server-evaluate", metrics)
-        self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
-        self.history.write_round(server_round)
-        if server_round and (
-            server_round % self.run.checkpoint_interval == 0 or server_round == self.run.num_server_rounds
-        ):
-            per_client = {
-                f"client_{i}_{self.history.client_names[i]}": st for i, st in sorted(self.client_stats.items())
-            }
-            path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round, per_client)
-            logger.info("Round {} checkpoint: {}", server_round, path)
-            if self.run.hf_repo_id and (
-                self.run.hf_push_every_checkpoint or server_round == self.run.num_server_rounds
-            ):
-                entries = [self.registry.get(n) for n in self.history.participants().values()] + [self.split.entry]
-                publish(self.run, self.history.run_dir, path, server_round, entries, metrics, self.push)
-        self.tracker.log(server_round, self.history.round(server_round))
-        return MetricRecord(metrics) if metrics else None
-
-    def checkpoint_bundle(self) -> PolicyBundle:
-        """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
-        stats = aggregate_stats(list(self.client_stats.values())) if self.client_stats else self.bundle.stats
-        pre, post = make_pre_post_processors(self.bundle.policy.config, dataset_stats=stats)
-        return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
+        run = self.run
+        metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
+        logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
+        return MetricRecord(metrics)
 
 
 def record_run_config(run: RunConfig, run_dir: Path, resumed: ResumePoint | None) -> None:
@@ -191,11 +125,12 @@ def main(grid: Grid, context: Context) -> None:
     )
     tracker = Tracker.start(run, run_dir)
     split = open_evaluation(entry, meta, bundle.policy.config, run)
-    round_end = RoundEnd(run, registry, bundle, split, history, tracker, resumed)
+    client_stats = dict(resumed.client_stats) if resumed else {}
+    artifacts = RoundArtifacts(run, registry, bundle, entry, history, tracker, client_stats, first_round=done + 1)
     strategy = ValidatingFedProx(
         expected=array_signature(initial),
         evaluates_in=run.evaluates_in,
-        recorder=round_end.record_clients,
+        observer=artifacts,
         last_round=run.num_server_rounds,
         proximal_mu=run.proximal_mu,
         fraction_train=run.fraction_train,
@@ -221,7 +156,8 @@ def main(grid: Grid, context: Context) -> None:
             num_rounds=run.num_server_rounds - done,
             train_config=ConfigRecord(dict(shared)),
             evaluate_config=ConfigRecord(dict(shared)),
-            evaluate_fn=round_end,
+            evaluate_fn=ServerEvaluation(run, bundle, split),
+            timeout=run.phase_timeout,
         )
     except Zk0Error as err:
         logger.error("zk0: {}", err)

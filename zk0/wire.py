@@ -16,6 +16,7 @@ from zk0.errors import Zk0Error
 # Names both ends use for the evaluation that rides on a train message (zk0.aggregation):
 EVALUATE_ROUND = "evaluate-round"  # train config: evaluate the received model (that round's) first
 EVALUATION = "evaluation"  # train reply: a ConfigRecord with that evaluation's metrics, or its "error"
+CLIENT = "client"  # every reply: a ConfigRecord naming the client ({"index": i, "dataset": name})
 SHAPE = "shape:"  # config: the global model's state/action sizes, e.g. "shape:action" = [6]
 
 

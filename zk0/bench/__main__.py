@@ -17,12 +17,21 @@ BENCHMARKS = {
 }
 
 
+def usage() -> str:
+    """Each benchmark with the first line of its module's docstring."""
+    lines = [
+        f"  {name:<11} {sys.modules[fn.__module__].__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items()
+    ]
+    return "usage: python -m zk0.bench <benchmark> [options] (--help for its options)\n\n" + "\n".join(lines)
+
+
 def main(argv: list[str]) -> int:
+    if argv[:1] in (["-h"], ["--help"]):
+        print(usage())
+        return 0
     if not argv or argv[0] not in BENCHMARKS:
-        print(
-            f"usage: python -m zk0.bench {{{','.join(BENCHMARKS)}}} [options]; got {argv[:1] or 'nothing'}.",
-            file=sys.stderr,
-        )
+        got = repr(argv[0]) if argv else "nothing"
+        print(f"python -m zk0.bench: got {got}; expected one of {', '.join(BENCHMARKS)} (see --help).", file=sys.stderr)
         return 2
     return BENCHMARKS[argv[0]](argv[1:])
 

@@ -25,6 +25,7 @@ import tempfile
 from pathlib import Path
 
 from zk0.bench.client import write_json
+from zk0.errors import OneSentenceParser
 from zk0.loopback import loopback_federation
 from zk0.registry import load_registry
 from zk0.simulation import run_federation
@@ -101,7 +102,7 @@ def fixed_cost(history: dict, steps: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench deployment", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="tiny", help="tiny, full-size, or a SmolVLA checkpoint")
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--local-steps", type=int, default=30)

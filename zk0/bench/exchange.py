@@ -11,7 +11,6 @@ time, and the server's decode + FedAvg time for ``--clients`` updates (Flower's 
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -23,6 +22,7 @@ from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
 from zk0.config import RunConfig
 from zk0.data import open_metadata
+from zk0.errors import OneSentenceParser
 from zk0.policy import build_policy, trainable_tensors
 from zk0.registry import load_registry
 from zk0.wire import decode, encode
@@ -57,7 +57,7 @@ def measure(tensors: dict[str, torch.Tensor], wire_dtype: str, clients: int, rep
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench exchange", description=__doc__.split("\n\n")[0])
     parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--repeat", type=int, default=3)

@@ -18,7 +18,6 @@ Needs lerobot, flwr and their light dependencies on a machine that has PyTorch w
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -27,6 +26,7 @@ import time
 from pathlib import Path
 
 from zk0.bench.client import write_json
+from zk0.errors import OneSentenceParser
 
 CONSUMER_GPU_GIB = 24.0
 
@@ -59,7 +59,7 @@ def largest_batch(small: tuple[int, float], large: tuple[int, float], budget_gib
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench gpu", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="full-size", choices=["full-size", "tiny"])
     parser.add_argument("--batch-size", type=int, default=64)
     parser.add_argument("--local-steps", type=int, default=200, help="local steps of the deployment round")

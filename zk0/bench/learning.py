@@ -10,7 +10,6 @@ the clients' mean action.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -19,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from zk0.errors import OneSentenceParser
 from zk0.registry import load_registry
 from zk0.simulation import run_federation
 
@@ -42,7 +42,7 @@ def mean_action_baseline(eval_dataset: str, eval_episodes: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench learning", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=20)
     parser.add_argument("--local-steps", type=int, default=25)
     parser.add_argument("--batch-size", type=int, default=8)

@@ -12,13 +12,13 @@ process plus its DataLoader workers (pages they share are counted once per proce
 
 from __future__ import annotations
 
-import argparse
 import sys
 
 import psutil
 import torch
 
 from zk0.bench.client import add_client_options, bench_client, write_json
+from zk0.errors import OneSentenceParser
 
 GIB = 2**30
 
@@ -38,7 +38,7 @@ def snapshot(phase: str, device: torch.device) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench memory", description=__doc__.split("\n\n")[0])
     add_client_options(parser)
     parser.add_argument("--steps", type=int, default=5, help="steps after the first")
     args = parser.parse_args(argv)

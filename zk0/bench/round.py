@@ -12,16 +12,16 @@ aggregate, checkpoint, charts, Flower's scheduling.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
+from zk0.errors import OneSentenceParser
 from zk0.simulation import run_federation
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench round", description=__doc__.split("\n\n")[0])
     parser.add_argument("--local-steps", type=int, default=200)
     parser.add_argument("--clients", type=int, default=1)
     parser.add_argument("--batch-size", type=int, default=8)

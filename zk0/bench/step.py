@@ -18,7 +18,6 @@ decodes an SO-100's real camera size (480x640, two cameras) instead of the tiny 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import statistics
 import sys
@@ -32,6 +31,7 @@ from torch.utils.data import DataLoader
 
 from zk0.bench.client import add_client_options, bench_client, write_json
 from zk0.data import loader_workers, open_split, train_loader
+from zk0.errors import OneSentenceParser
 from zk0.training import LocalTrainer, metrics_tracker, peak_memory
 
 
@@ -79,7 +79,7 @@ def zk0_steps(trainer: LocalTrainer, steps: int) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneSentenceParser(prog="python -m zk0.bench step", description=__doc__.split("\n\n")[0])
     add_client_options(parser)
     parser.add_argument("--steps", type=int, default=10, help="steps per block")
     parser.add_argument("--blocks", type=int, default=3, help="interleaved blocks per loop")

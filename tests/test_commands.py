@@ -1,0 +1,66 @@
+"""Every command's --help exits 0 with usage; a bad argument exits 2 with one sentence."""
+
+from __future__ import annotations
+
+import pytest
+
+from zk0.bench.__main__ import BENCHMARKS
+from zk0.bench.__main__ import main as bench
+from zk0.cli import build_parser
+from zk0.cli import main as zk0
+
+
+def exit_code(call, argv: list[str]) -> int:
+    try:
+        return call(argv)
+    except SystemExit as done:  # argparse's --help and errors
+        return done.code
+
+
+COMMANDS = ["assets", "check", "certs", "superlink", "supernode"]
+
+
+def test_the_command_list_is_zk0s():
+    assert "{" + ",".join(COMMANDS) + "}" in build_parser().format_usage()
+
+
+@pytest.mark.parametrize("command", [[], *([name] for name in COMMANDS)])
+def test_zk0_help_exits_0_with_usage(command, capsys):
+    assert exit_code(zk0, [*command, "--help"]) == 0
+    assert capsys.readouterr().out.startswith(f"usage: {' '.join(['zk0', *command])}")
+
+
+@pytest.mark.parametrize("benchmark", [None, *BENCHMARKS])
+def test_bench_help_exits_0_with_usage(benchmark, capsys):
+    assert exit_code(bench, [benchmark, "--help"] if benchmark else ["--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"usage: python -m zk0.bench {benchmark or '<benchmark>'}")
+    if benchmark is None:
+        assert all(f"  {name} " in out for name in BENCHMARKS)
+
+
+@pytest.mark.parametrize(
+    ("call", "argv", "sentence"),
+    [
+        (
+            bench,
+            ["steps"],
+            "python -m zk0.bench: got 'steps'; expected one of " + ", ".join(BENCHMARKS) + " (see --help).",
+        ),
+        (bench, [], "python -m zk0.bench: got nothing; expected one of " + ", ".join(BENCHMARKS) + " (see --help)."),
+        (
+            bench,
+            ["step", "--bogus"],
+            "python -m zk0.bench step: unrecognized arguments: --bogus; see python -m zk0.bench step --help.",
+        ),
+        (
+            zk0,
+            ["supernode", "--superlink", "h:1"],
+            "zk0 supernode: the following arguments are required: --dataset; see zk0 supernode --help.",
+        ),
+        (zk0, ["assets", "--seed", "x"], "zk0 assets: argument --seed: invalid int value: 'x'; see zk0 assets --help."),
+    ],
+)
+def test_a_bad_argument_exits_2_with_one_sentence(call, argv, sentence, capsys):
+    assert exit_code(call, argv) == 2
+    assert capsys.readouterr().err == sentence + "\n"

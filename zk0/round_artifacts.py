@@ -1,0 +1,114 @@
+"""What the server keeps of every round: clients' records, JSON and charts, checkpoints, the Hub
+staging, W&B, and one progress line a person reads.
+
+``RoundArtifacts`` is the observer ``zk0.aggregation.ValidatingFedProx`` calls: with the client
+replies each phase counted or lost (``record_clients``), and once a round is over, after Flower's
+``evaluate_fn`` evaluated the global model (``round_ended``). It writes only from what it is
+given, so a simulation and a deployment leave the same files.
+"""
+
+from __future__ import annotations
+
+import time
+
+from flwr.app import ArrayRecord, MetricRecord, RecordDict
+from lerobot.datasets.compute_stats import aggregate_stats
+from lerobot.policies import make_pre_post_processors
+from loguru import logger
+
+from zk0.artifacts import History, save_checkpoint
+from zk0.config import RunConfig
+from zk0.hub import can_push, publish
+from zk0.policy import PolicyBundle, set_trainable
+from zk0.registry import DatasetEntry, Registry
+from zk0.stats import stats_from_record
+from zk0.tracking import Tracker
+from zk0.wire import CLIENT
+
+
+class RoundArtifacts:
+    """Every file a run writes on the server, written as each round ends."""
+
+    def __init__(
+        self,
+        run: RunConfig,
+        registry: Registry,
+        bundle: PolicyBundle,
+        eval_entry: DatasetEntry,
+        history: History,
+        tracker: Tracker,
+        client_stats: dict[int, dict],
+        first_round: int,
+    ):
+        self.run, self.registry, self.bundle, self.eval_entry = run, registry, bundle, eval_entry
+        self.history, self.tracker = history, tracker
+        self.client_stats = client_stats  # dataset index -> that client's normalisation statistics
+        self.first_round = first_round  # this process's first round (a resumed run's is not 1)
+        self.push = can_push(run)
+        self.started = time.perf_counter()
+
+    def record_clients(
+        self,
+        phase: str,
+        server_round: int,
+        replies: list[RecordDict],
+        aggregate: MetricRecord | None,
+        failures: dict[int, str],
+    ) -> None:
+        """Keep each client's metrics (by dataset index, never node id), their aggregate, dataset
+        statistics, and why a client's reply failed (``failures``: dataset index -> reason)."""
+        for index, reason in failures.items():
+            self.history.add_client(server_round, phase, index, {"error": reason})
+        if aggregate:
+            self.history.add(server_round, f"aggregate-{phase}", dict(aggregate))
+        for content in replies:
+            index = int(content[CLIENT]["index"])
+            self.history.add_client(server_round, phase, index, dict(content["metrics"]))
+            if "stats" in content:
+                self.client_stats[index] = stats_from_record(content["stats"])
+
+    def round_ended(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
+        """The round's JSON and charts, a checkpoint when the run keeps one, W&B, the progress line."""
+        self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
+        if evaluation is not None:
+            self.history.add(server_round, "server-evaluate", dict(evaluation))
+        self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
+        self.history.write_round(server_round)
+        if self.run.checkpoints_in(server_round):
+            self.checkpoint(server_round, arrays, evaluation)
+        self.tracker.log(server_round, self.history.round(server_round))
+        if server_round:
+            logger.info(self.progress(server_round))
+
+    def checkpoint(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
+        """A lerobot pretrained-model directory of the global model, staged (and pushed) for the Hub."""
+        set_trainable(self.bundle, arrays)
+        names = self.history.client_names
+        per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(self.client_stats.items())}
+        path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round, per_client)
+        logger.info("Round {} checkpoint: {}", server_round, path)
+        if self.run.hf_repo_id and (self.run.hf_push_every_checkpoint or server_round == self.run.num_server_rounds):
+            entries = [self.registry.get(n) for n in self.history.participants().values()] + [self.eval_entry]
+            metrics = dict(evaluation) if evaluation else None
+            publish(self.run, self.history.run_dir, path, server_round, entries, metrics, self.push)
+
+    def checkpoint_bundle(self) -> PolicyBundle:
+        """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
+        stats = aggregate_stats(list(self.client_stats.values())) if self.client_stats else self.bundle.stats
+        pre, post = make_pre_post_processors(self.bundle.policy.config, dataset_stats=stats)
+        return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
+
+    def progress(self, server_round: int) -> str:
+        """``Round 3/10: 4 clients trained, train loss 0.53, server action MSE 61.5, 12.3 s/round, about 1m 26s left``."""
+        record = self.history.round(server_round)
+        trained = sum("train" in c and "error" not in c["train"] for c in record["clients"].values())
+        loss = record.get("aggregate-train", {}).get("train-loss")
+        mse = record.get("server-evaluate", {}).get("action-mse")
+        per_round = (time.perf_counter() - self.started) / (server_round - self.first_round + 1)
+        left = round(per_round * (self.run.num_server_rounds - server_round))
+        return (
+            f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
+            f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
+            f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
+            f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
+        )
