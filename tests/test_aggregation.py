@@ -155,7 +155,8 @@ def test_a_failed_client_evaluation_is_recorded_with_its_reason_and_training_sti
     reason = "Client 2 (b): Dataset 'b': 3 of 3 held-out batches could not be decoded, more than max-skip-fraction=0.1."
     replies[1].content["evaluation"] = ConfigRecord({"error": reason})
     result, _ = strategy.aggregate_train(3, replies)
-    assert result is not None
+    np.testing.assert_allclose(result["a"].numpy(), np.full((2, 3), (1.0 * 10 + 3.0 * 30) / 40))
+    assert strategy.recorded[1][:3] == ("train", 3, 2)
     phase, evaluated, count, aggregate, failures = strategy.recorded[0]
     assert (phase, evaluated, count, failures) == ("evaluate", 2, 1, {2: reason})
     assert aggregate["action-mse"] == pytest.approx(2.0)

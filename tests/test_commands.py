@@ -18,6 +18,11 @@ def exit_code(call, argv: list[str]) -> int:
 
 
 COMMANDS = ["assets", "check", "certs", "superlink", "supernode"]
+BENCHES = "learning, exchange, step, round, memory, deployment, gpu"
+
+
+def test_the_benchmark_list_is_zk0s():
+    assert ", ".join(BENCHMARKS) == BENCHES
 
 
 def test_the_command_list_is_zk0s():
@@ -45,9 +50,9 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         (
             bench,
             ["steps"],
-            "python -m zk0.bench: got 'steps'; expected one of " + ", ".join(BENCHMARKS) + " (see --help).",
+            f"python -m zk0.bench: got 'steps'; expected one of {BENCHES} (see --help).",
         ),
-        (bench, [], "python -m zk0.bench: got nothing; expected one of " + ", ".join(BENCHMARKS) + " (see --help)."),
+        (bench, [], f"python -m zk0.bench: got nothing; expected one of {BENCHES} (see --help)."),
         (
             bench,
             ["step", "--bogus"],

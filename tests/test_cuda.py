@@ -29,7 +29,9 @@ def test_a_client_trains_on_cuda_with_bf16_and_reports_its_peak_memory(cuda_clie
     assert cuda_client.trainer.loader.pin_memory
     metrics = cuda_client.trainer.fit(3, mu=0.01, global_step=0)
     assert metrics["num-examples"] == 12 and metrics["skipped-batches"] == 0
-    assert metrics["peak-gpu-gib"] > 0
+    weights = sum(p.numel() * p.element_size() for p in cuda_client.bundle.policy.parameters()) / 2**30
+    total = torch.cuda.get_device_properties(0).total_memory / 2**30
+    assert weights <= metrics["peak-gpu-gib"] <= total, "GiB of this GPU, at least the weights"
     assert all(p.device.type == "cuda" for p in cuda_client.bundle.policy.parameters())
 
 
@@ -41,7 +43,7 @@ def test_evaluation_on_cuda_is_seeded(cuda_client):
         for _ in range(2)
     ]
     assert runs[0]["policy-loss"] == pytest.approx(runs[1]["policy-loss"], rel=1e-3)
-    assert runs[0]["action-mse"] > 0
+    assert runs[0]["action-mse"] > 1.0  # joint positions in degrees, not normalised units
 
 
 def test_frames_reach_the_gpu_as_uint8_and_the_processors_run_there(cuda_client):

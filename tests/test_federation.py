@@ -125,9 +125,10 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     entry = registry.clients[1]
     resumed = build_policy(RunConfig(model=str(checkpoint)), open_metadata(entry), entry, registry.model_cameras())
     start = get_trainable(resumed)
-    for name, value in policy.state_dict().items():
-        if name in start:
-            assert (start[name].numpy() == value.numpy()).all(), name
+    assert set(start) == set(trainable)
+    saved = policy.state_dict()
+    for name in trainable:
+        assert (start[name].numpy() == saved[name].numpy()).all(), name
 
 
 def test_bad_run_config_fails_before_training_in_one_sentence(flower_env, tmp_path):

@@ -89,15 +89,14 @@ def test_last_episodes_are_held_out():
         split_episodes(6, RunConfig(eval_episodes=6).eval_episodes, "d")
 
 
-def test_loader_workers_follow_the_client_cpus():
-    import os
-
-    from zk0.data import MAX_WORKERS, loader_workers
+def test_loader_workers_follow_the_client_cpus(monkeypatch):
+    from zk0.data import loader_workers
 
     assert loader_workers(RunConfig(num_workers=3)) == 3
     assert loader_workers(RunConfig(num_workers=0)) == 0
-    expected = max(0, min(MAX_WORKERS, len(os.sched_getaffinity(0)) - 1))
-    assert loader_workers(RunConfig(num_workers=-1)) == expected
+    for cpus, workers in (("4", 3), ("20", 8), ("1", 0)):  # one CPU is the training loop's; at most 8
+        monkeypatch.setenv("ZK0_CPUS", cpus)  # what `zk0 supernode --cpus` sets
+        assert loader_workers(RunConfig(num_workers=-1)) == workers, cpus
 
 
 def test_spawned_workers_give_the_same_batches(registry):

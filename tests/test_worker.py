@@ -13,7 +13,6 @@ import threading
 import numpy as np
 import torch
 from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
-from flwr.supercore.task_identity import TaskIdentity
 
 from zk0 import app_fingerprint, client_app, worker
 
@@ -48,7 +47,7 @@ def test_message_contents_cross_the_socket_unchanged():
     assert dict(back["config"]) == {"server-round": 3, "run-name": "r"} and dict(back["metrics"]) == {"loss": 0.5}
 
 
-def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(tmp_path, monkeypatch, registry):
+def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(tmp_path, monkeypatch, registry, flower_task):
     """A socket folder others may enter is refused; the message is answered in this process instead."""
     from loguru import logger
 
@@ -67,7 +66,6 @@ def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(tmp_path
         "server-round": 1, "proximal-mu": 0.0, "run-name": "r1", "app-fingerprint": app_fingerprint(),
         "backbone-fingerprint": backbone_fingerprint(server.bundle),
     }  # fmt: skip
-    TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 5, 1, 0
     message = Message(
         content=RecordDict(
             {"arrays": encode(trainable_tensors(server.bundle), run.wire_dtype), "config": ConfigRecord(config)}
