@@ -207,13 +207,12 @@ class ValidatingFedProx(FedProx):
         contents = [
             RecordDict({"metrics": MetricRecord(e), CLIENT: client}) for client, e in carried if "error" not in e
         ]
-        evaluations = [e for _, e in carried]
         aggregate = self.evaluate_metrics_aggr_fn(contents, self.weighted_by_key) if contents else None
         if contents:
             logger.info(
                 "Round {} client evaluation (sent with round {}): {}", evaluated_round, evaluated_round + 1, aggregate
             )
-        if evaluations:
+        if carried:
             self.observer.record_clients("evaluate", evaluated_round, contents, aggregate, failures)
 
     def configure_evaluate(

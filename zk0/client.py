@@ -129,11 +129,16 @@ def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, 
     return _SESSIONS[key], time.perf_counter() - started
 
 
+def client_label(index: int, dataset: str) -> str:
+    """How the server's log names a client: its registry index and dataset, never a node id."""
+    return f"Client {index} ({dataset})"
+
+
 @contextmanager
 def _named(index: int, dataset: str) -> Iterator[None]:
     """Prefix a user error's sentence with the client it happened on: the server reads it without
     knowing which node is which client."""
-    label = f"Client {index} ({dataset})"
+    label = client_label(index, dataset)
     try:
         yield
     except Zk0Error as err:
@@ -157,7 +162,7 @@ def release_sessions(keep_run: int | None = None) -> None:
 
 def _check_server(session: ClientSession, config: ConfigRecord) -> None:
     """Refuse a server whose app code or frozen backbone differs from this client's (one sentence each)."""
-    name = f"Client {session.index} ({session.split.entry.name})"
+    name = client_label(session.index, session.split.entry.name)
     if str(config["app-fingerprint"]) != app_fingerprint():
         raise PolicyError(
             f"{name} runs zk0 {app_fingerprint()}, the server runs zk0 {config['app-fingerprint']}; "
@@ -227,7 +232,7 @@ def _evaluate_before_training(session: ClientSession, content: RecordDict) -> di
     try:
         return dict(_evaluate(session, content)["metrics"])
     except Zk0Error as err:
-        reason = f"Client {session.index} ({session.split.entry.name}): {err}"
+        reason = f"{client_label(session.index, session.split.entry.name)}: {err}"
         logger.error("zk0: {}", reason)
         return {"error": reason}
 

@@ -100,6 +100,11 @@ def policy_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
     return cfg
 
 
+def config_features(cfg: PreTrainedConfig) -> dict:
+    """A policy config's input and output features in one dict (what its datasets must feed)."""
+    return {**cfg.input_features, **cfg.output_features}
+
+
 def model_features(
     meta: LeRobotDatasetMetadata, entry: DatasetEntry, model_cameras: list[str], expected: dict | None = None
 ) -> dict:
@@ -146,7 +151,7 @@ def build_policy(
         features = model_features(meta, entry, registry_cameras)
         cfg.input_features = {k: ft for k, ft in features.items() if ft.type is not FeatureType.ACTION}
     else:
-        pretrained = {**cfg.input_features, **cfg.output_features}
+        pretrained = config_features(cfg)
         model_cameras = sorted(k for k, ft in cfg.input_features.items() if ft.type is FeatureType.VISUAL)
         features = model_features(meta, entry, model_cameras, expected=pretrained)
     rename = entry.rename_map()
@@ -175,7 +180,7 @@ def _pretrained_overrides(cfg: PreTrainedConfig, stats: dict, device: torch.devi
             "device_processor": {"device": device.type},
             "normalizer_processor": {
                 "stats": stats,
-                "features": {**cfg.input_features, **cfg.output_features},
+                "features": config_features(cfg),
                 "norm_map": cfg.normalization_mapping,
             },
         },

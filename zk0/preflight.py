@@ -21,7 +21,7 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
 from zk0.config import RunConfig
 from zk0.data import DataError, open_metadata
-from zk0.policy import OFFLINE_MODELS, PolicyError, policy_config, resolve_device
+from zk0.policy import OFFLINE_MODELS, PolicyError, config_features, policy_config, resolve_device
 from zk0.registry import DatasetEntry, Registry
 
 LAYOUT = "v3"  # lerobot 0.6 reads LeRobotDataset v3.x
@@ -47,7 +47,7 @@ def model_inputs(run: RunConfig, registry_cameras: list[str], shapes: dict | Non
         raise
     except Exception as err:  # Hub, file and JSON errors all mean the same thing here
         raise PolicyError(f"Model {run.model!r} cannot be opened ({type(err).__name__}: {err}).") from None
-    features: dict = {**cfg.input_features, **cfg.output_features}
+    features = config_features(cfg)
     cameras = tuple(sorted(k for k, ft in features.items() if ft.type is FeatureType.VISUAL))
     return ModelInputs(cameras, {k: tuple(features[k].shape) for k in SIZED if k in features})
 
@@ -154,8 +154,8 @@ def on_this_machine(entry: DatasetEntry) -> bool:
     if not hub_constants.HF_HUB_OFFLINE:
         return True
     try:
-        LeRobotDatasetMetadata(entry.repo_id, revision=entry.revision)
-    except Exception:  # noqa: BLE001  # not cached: nothing to check offline
+        open_metadata(entry)
+    except DataError:  # not cached: nothing to check offline
         return False
     return True
 

@@ -26,7 +26,7 @@ from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
 from zk0.internals import is_simulation
 from zk0.logs import add_file_sink, setup_logging
-from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, config_features, get_trainable, set_trainable
 from zk0.preflight import SIZED, check_federation
 from zk0.registry import Registry, load_registry
 from zk0.resume import ResumePoint, find_resume_point
@@ -147,7 +147,7 @@ def main(grid: Grid, context: Context) -> None:
         "backbone-fingerprint": fingerprint,
         "app-fingerprint": app_fingerprint(),
         "run-name": run_dir.name,
-        **{SHAPE + key: list(ft.shape) for key, ft in model_features(bundle).items() if key in SIZED},
+        **{SHAPE + key: list(ft.shape) for key, ft in config_features(bundle.policy.config).items() if key in SIZED},
     }
     try:
         strategy.start(
@@ -165,8 +165,3 @@ def main(grid: Grid, context: Context) -> None:
     finally:
         tracker.finish()
     logger.info("Done: outputs in {}", run_dir)
-
-
-def model_features(bundle: PolicyBundle) -> dict:
-    """The global policy's input and output features (what every client's dataset must match)."""
-    return {**bundle.policy.config.input_features, **bundle.policy.config.output_features}
