@@ -14,6 +14,14 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 os.environ.setdefault("SVT_LOG", "1")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def offline_assets():
+    """The offline backbone and datasets, generated once (opening a registry entry never does)."""
+    from zk0.assets import ensure_all
+
+    ensure_all()
+
+
 @pytest.fixture(scope="session")
 def registry():
     from zk0.registry import load_registry

@@ -21,6 +21,7 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
 from zk0.config import RunConfig
 from zk0.data import DataError, open_metadata
+from zk0.errors import Zk0Error
 from zk0.policy import OFFLINE_MODELS, PolicyError, config_features, policy_config, resolve_device
 from zk0.registry import DatasetEntry, Registry
 
@@ -188,7 +189,7 @@ def check_federation(run: RunConfig, registry: Registry, clients: bool = True, s
         inputs = inputs or model_inputs(run, registry.model_cameras())
         try:
             meta = check_dataset(entry, inputs, None if entry is server else run.eval_episodes)
-        except DataError as err:
+        except Zk0Error as err:  # the dataset's problems, or a generated one not generated yet
             report.problems.append(str(err))
             continue
         report.checked.append(entry.name)

@@ -108,6 +108,20 @@ def synthetic_dataset_root(name: str, root: Path | None = None) -> Path:
     return (root or default_cache_root()) / "datasets" / SPECS[name].repo_id
 
 
+def generated_dataset(name: str, root: Path | None = None) -> Path | None:
+    """The synthetic dataset ``name`` if this machine has generated it (any seed), else None.
+
+    Opening a dataset only looks; generating is an explicit step (``zk0 assets``, which
+    ``./train.sh`` runs, the benchmarks' and the tests' set-up).
+    """
+    target = synthetic_dataset_root(name, root)
+    try:
+        manifest = json.loads((target / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+    return target if manifest.get("asset") == name and manifest.get("version") == GENERATOR_VERSION else None
+
+
 def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes: int | None = None) -> Path:
     """The synthetic dataset ``name`` as a LeRobotDataset root, generated if missing or stale."""
     target = synthetic_dataset_root(name, root)

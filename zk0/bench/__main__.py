@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 
+from zk0.assets import ensure_all
 from zk0.bench import deployment, exchange, gpu, learning, memory, round, step
 
 BENCHMARKS = {
@@ -33,6 +34,8 @@ def main(argv: list[str]) -> int:
         got = repr(argv[0]) if argv else "nothing"
         print(f"python -m zk0.bench: got {got}; expected one of {', '.join(BENCHMARKS)} (see --help).", file=sys.stderr)
         return 2
+    if not set(argv[1:]) & {"-h", "--help"}:
+        ensure_all()  # the offline backbone and datasets: generated here, once, never by opening them
     return BENCHMARKS[argv[0]](argv[1:])
 
 

@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from zk0.assets import ensure_dataset
 from zk0.assets.datasets import SPECS
 from zk0.client import build_client
 from zk0.config import RunConfig
@@ -34,6 +35,7 @@ def bench_entry(registry: Registry, name: str | None) -> DatasetEntry:
     if name in SPECS and name not in {entry.name for entry in registry.entries}:
         targets = registry.model_cameras()  # observation.images.<target>, sorted
         cameras = {src: dst.rsplit(".", 1)[-1] for src, dst in zip(SPECS[name].cameras, targets, strict=False)}
+        ensure_dataset(name)  # benchmark-only: not among what `zk0 assets` generates by default
         return DatasetEntry(SPECS[name].repo_id, name, synthetic=True, cameras=cameras)
     return registry.get(name)
 
