@@ -55,3 +55,29 @@ def flower_task():
     TaskIdentity.run_id, TaskIdentity.task_id, TaskIdentity.node_id = 1, 1, 0
     yield
     TaskIdentity._run_id, TaskIdentity._task_id, TaskIdentity._node_id = saved
+
+
+@pytest.fixture
+def isolated_logging():
+    """For a test whose code calls ``zk0.logs.setup_logging`` (directly or by handling a message):
+    the standard-library logging it rewires is put back, and loguru is left as a fresh process
+    has it, so later tests see the logging they would alone."""
+    import logging
+    import sys
+
+    from loguru import logger
+
+    from zk0 import logs
+
+    names = ["", "flwr", "lerobot", "ray", "accelerate", "httpx", "httpcore", "urllib3", "filelock"]
+    saved = {name: (logging.getLogger(name), logging.getLogger(name).handlers[:]) for name in names}
+    levels = {name: (lg.level, lg.propagate) for name, (lg, _) in saved.items()}
+    yield
+    for name, (lg, handlers) in saved.items():
+        lg.handlers = handlers
+        lg.setLevel(levels[name][0])
+        lg.propagate = levels[name][1]
+    logger.remove()
+    logger.configure(extra={})
+    logger.add(sys.stderr)
+    logs._console_sink = None  # the next setup_logging starts from loguru's defaults again

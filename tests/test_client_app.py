@@ -36,7 +36,7 @@ def test_wandb_without_a_key_is_one_warning_not_a_failure(tmp_path, monkeypatch)
     assert len(messages) == 1 and "WANDB_API_KEY" in messages[0]
 
 
-def test_a_client_refuses_a_server_running_other_code_and_logs_in_its_own_folder(tmp_path):
+def test_a_client_refuses_a_server_running_other_code_and_logs_in_its_own_folder(tmp_path, isolated_logging):
     from flwr.app import ArrayRecord, ConfigRecord, Context, RecordDict
 
     from zk0 import app_fingerprint

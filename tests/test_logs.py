@@ -14,7 +14,7 @@ def emit_from_a_library():
     logging.getLogger("lerobot.datasets").info("from lerobot")
 
 
-def test_library_records_keep_their_real_caller():
+def test_library_records_keep_their_real_caller(isolated_logging):
     setup_logging("test")
     records = []
     sink = logger.add(lambda message: records.append(message.record), level="INFO")

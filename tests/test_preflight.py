@@ -141,7 +141,7 @@ def test_each_bad_dataset_is_refused_in_one_sentence_by_zk0_check_and_a_run(kind
     assert report.problems == [expected] and report.checked == ["synth-so100-eval"]
 
 
-def test_a_client_refuses_its_bad_dataset_with_an_error_reply_naming_it(good, tmp_path, flower_task):
+def test_a_client_refuses_its_bad_dataset_with_an_error_reply_naming_it(good, tmp_path, flower_task, isolated_logging):
     """What the ClientApp sends back: Flower's error reply, with zk0's sentence as the reason."""
     from zk0.client_app import _reply
     from zk0.errors import REFUSED

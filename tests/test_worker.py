@@ -47,7 +47,9 @@ def test_message_contents_cross_the_socket_unchanged():
     assert dict(back["config"]) == {"server-round": 3, "run-name": "r"} and dict(back["metrics"]) == {"loss": 0.5}
 
 
-def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(tmp_path, monkeypatch, registry, flower_task):
+def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
+    tmp_path, monkeypatch, registry, flower_task, isolated_logging
+):
     """A socket folder others may enter is refused; the message is answered in this process instead."""
     from loguru import logger
 
