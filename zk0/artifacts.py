@@ -4,7 +4,7 @@ Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
 
     server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
     clients/client_<i>/client.log (written by the client), round_<N>.json
-    models/checkpoint_round_<N>/   a lerobot pretrained-model directory
+    models/checkpoint_round_<N>/   a lerobot pretrained-model directory (LoRA: merged, adapter/ beside)
 
 JSON and charts are rewritten after every round, so an interrupted run keeps them;
 checkpoints are written under a temporary name and renamed; nothing is pickled.
@@ -24,6 +24,7 @@ from lerobot.datasets.utils import serialize_dict
 from matplotlib.figure import Figure  # the object API: no pyplot state, no GUI backend
 from matplotlib.ticker import MaxNLocator
 
+from zk0 import adapters
 from zk0.errors import Zk0Error
 from zk0.policy import PolicyBundle
 
@@ -139,7 +140,8 @@ def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, wi
 def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int, client_stats: dict[str, dict]) -> Path:
     """A lerobot pretrained-model directory, written to a temporary name and renamed into place.
 
-    Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
+    A LoRA policy is saved with its adapters merged in (and alone under ``adapter/``), so the
+    directory loads like any other. Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
     client's own statistics, so a robot owner can run the policy normalised for their robot.
     """
     models = run_dir / "models"
@@ -147,7 +149,9 @@ def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int, clie
     final = models / f"checkpoint_round_{server_round}"
     staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=models))
     try:
-        bundle.policy.save_pretrained(staging)
+        adapters.merged(bundle.policy).save_pretrained(staging)
+        if adapters.is_adapted(bundle.policy):
+            adapters.save_adapter(bundle.policy, staging / adapters.ADAPTER_DIR)
         bundle.preprocessor.save_pretrained(staging)
         bundle.postprocessor.save_pretrained(staging)
         for name, stats in client_stats.items():

@@ -20,6 +20,9 @@ from zk0.errors import Zk0Error
 DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
 WIRE_DTYPES = ("bfloat16", "float32")  # zk0.wire encodes them
+OFFLINE_MODELS = ("tiny", "full-size")  # built from a generated backbone with random weights (zk0.policy)
+PEFT_METHODS = ("none", "lora")  # zk0.adapters
+LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.adapters)
 
 
 class ConfigError(Zk0Error):
@@ -62,6 +65,12 @@ class RunConfig:
     wire_dtype: str = "bfloat16"
     compile: bool = False  # lerobot's compile_model; zk0.policy keeps the compiled code in $ZK0_CACHE
     phase_timeout: float = 3600.0  # seconds the server waits for a round's train (or evaluate) replies
+    peft: str = "none"  # "lora": train and exchange lerobot's LoRA adapters instead of all trainable weights
+    lora_rank: int = 16
+    lora_alpha: float = 32.0
+    lora_targets: str = ""  # a regex of module names; "" = SmolVLA's own default targets
+    lora_full_modules: str = ""  # comma-separated modules trained in full next to the adapters (PEFT modules_to_save)
+    lora_average: str = "b"  # b: A frozen at its seeded start, B trained and averaged; ab: both trained and averaged
 
     @property
     def total_steps(self) -> int:
@@ -104,6 +113,8 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "frame_cache_gb": (0, None, False),
     "max_skip_fraction": (0, 1, False),
     "phase_timeout": (0, None, True),
+    "lora_rank": (1, None, False),
+    "lora_alpha": (0, None, True),
 }
 
 
@@ -162,3 +173,26 @@ def _check_choices(cfg: RunConfig) -> None:
         raise ConfigError(f"Run-config key 'hf-repo-id' got {cfg.hf_repo_id!r}; expected '<owner>/<model-name>'.")
     if not cfg.model:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")
+    _check_peft(cfg)
+
+
+def _check_peft(cfg: RunConfig) -> None:
+    """LoRA keys: a known method and averaging, a target regex that compiles, a pretrained base."""
+    if cfg.peft not in PEFT_METHODS:
+        raise ConfigError(f"Run-config key 'peft' got {cfg.peft!r}; expected one of {list(PEFT_METHODS)}.")
+    if cfg.lora_average not in LORA_AVERAGES:
+        raise ConfigError(
+            f"Run-config key 'lora-average' got {cfg.lora_average!r}; expected one of {list(LORA_AVERAGES)}."
+        )
+    try:
+        re.compile(cfg.lora_targets)
+    except re.error as err:
+        raise ConfigError(
+            f"Run-config key 'lora-targets' got {cfg.lora_targets!r}, which is not a regular expression ({err})."
+        ) from None
+    if cfg.peft == "lora" and cfg.model in OFFLINE_MODELS:
+        raise ConfigError(
+            f"Run-config key 'peft' = 'lora' adapts a pretrained SmolVLA, and model={cfg.model!r} has random "
+            "weights (lerobot refuses LoRA from scratch); expected 'model' to be a checkpoint folder such as "
+            "outputs/<run>/models/checkpoint_round_<N> or a Hub id such as lerobot/smolvla_base."
+        )

@@ -16,8 +16,7 @@ from pathlib import Path
 from huggingface_hub import HfApi
 from loguru import logger
 
-from zk0.config import RunConfig
-from zk0.policy import OFFLINE_MODELS
+from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.registry import DatasetEntry
 
 CARD = """---

@@ -22,8 +22,9 @@ from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcess
 from lerobot.utils.feature_utils import dataset_to_policy_features
 from transformers import AutoConfig
 
+from zk0 import adapters
 from zk0.assets import FULL_SIZE_BACKBONE, TINY_BACKBONE, default_cache_root, ensure_backbone
-from zk0.config import RunConfig
+from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.errors import Zk0Error
 from zk0.registry import DatasetEntry
 
@@ -32,8 +33,8 @@ from zk0.registry import DatasetEntry
 # H100 against 0.288 s eager (docs/performance.md).
 COMPILE_MODE = "default"
 
-# Models built offline from a generated backbone (random weights): run-config `model` values.
-OFFLINE_MODELS = {"tiny": TINY_BACKBONE, "full-size": FULL_SIZE_BACKBONE}
+# The generated backbone (random weights) each offline run-config `model` value is built on.
+OFFLINE_BACKBONES = dict(zip(OFFLINE_MODELS, (TINY_BACKBONE, FULL_SIZE_BACKBONE), strict=True))
 
 
 class PolicyError(Zk0Error):
@@ -44,7 +45,7 @@ class PolicyError(Zk0Error):
 class PolicyBundle:
     """A policy with the processors that normalise its inputs and unnormalise its actions."""
 
-    policy: PreTrainedPolicy
+    policy: PreTrainedPolicy  # or a PEFT model around one (zk0.adapters)
     preprocessor: PolicyProcessorPipeline
     postprocessor: PolicyProcessorPipeline
     trainable_names: list[str]
@@ -75,7 +76,7 @@ def keep_compiled_code() -> None:
 def policy_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
     """SmolVLA's config: a fresh policy on an offline backbone, or a pretrained policy's own config."""
     if run.model in OFFLINE_MODELS:
-        backbone = ensure_backbone(kind=OFFLINE_MODELS[run.model])
+        backbone = ensure_backbone(kind=OFFLINE_BACKBONES[run.model])
         image_size = AutoConfig.from_pretrained(backbone).vision_config.image_size
         return SmolVLAConfig(
             vlm_model_name=str(backbone),
@@ -138,7 +139,8 @@ def model_features(
 def build_policy(
     run: RunConfig, meta: LeRobotDatasetMetadata, entry: DatasetEntry, registry_cameras: list[str]
 ) -> PolicyBundle:
-    """Build SmolVLA + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``.
+    """Build SmolVLA + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``,
+    wrapped with LoRA adapters when the run says ``peft = "lora"`` (zk0.adapters).
 
     The model's cameras are a pretrained policy's own image inputs, or for a fresh policy the
     registry's mapping targets; cameras this dataset lacks become SmolVLA empty-camera slots.
@@ -159,6 +161,8 @@ def build_policy(
     cfg.empty_cameras = sum(1 for k, ft in features.items() if ft.type is FeatureType.VISUAL and k not in present)
     torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
     policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
+    if run.peft == "lora":
+        policy = adapters.wrap(policy, run)  # from here on, the adapters are what trains and travels
     stats = rename_stats(meta.stats, entry.rename_map())
     preprocessor, postprocessor = make_pre_post_processors(
         policy.config,

@@ -19,10 +19,10 @@ from huggingface_hub import constants as hub_constants
 from lerobot.configs import FeatureType
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 
-from zk0.config import RunConfig
+from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data import DataError, open_metadata
 from zk0.errors import Zk0Error
-from zk0.policy import OFFLINE_MODELS, PolicyError, config_features, policy_config, resolve_device
+from zk0.policy import PolicyError, config_features, policy_config, resolve_device
 from zk0.registry import DatasetEntry, Registry
 
 LAYOUT = "v3"  # lerobot 0.6 reads LeRobotDataset v3.x

@@ -19,8 +19,9 @@ from flwr.app import ArrayRecord
 from lerobot.datasets.io_utils import cast_stats_to_numpy
 from safetensors.torch import load_file
 
+from zk0 import adapters
 from zk0.config import ConfigError
-from zk0.policy import PolicyBundle
+from zk0.policy import PolicyBundle, get_trainable
 
 CHECKPOINT = re.compile(r"checkpoint_round_(\d+)")
 CLIENT_STATS = re.compile(r"client_(\d+)_.*")
@@ -37,7 +38,11 @@ class ResumePoint:
     client_stats: dict[int, dict]
 
     def trainable(self, bundle: PolicyBundle) -> ArrayRecord:
-        """The checkpoint's trainable tensors, under the policy's parameter names."""
+        """The checkpoint's trainable tensors, under the policy's parameter names (a LoRA run's
+        adapters come from the checkpoint's ``adapter/``; its merged weights are for users)."""
+        if adapters.is_adapted(bundle.policy):
+            adapters.load_adapter(bundle.policy, self.checkpoint)
+            return get_trainable(bundle)
         weights = load_file(self.checkpoint / "model.safetensors")
         missing = [n for n in bundle.trainable_names if n not in weights]
         if missing:

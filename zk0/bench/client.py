@@ -1,4 +1,5 @@
-"""One client built the way the ClientApp builds it, for the in-process benchmarks (step, memory)."""
+"""One client built the way the ClientApp builds it, for the in-process benchmarks (step, memory),
+and the pretrained starting point a LoRA benchmark needs when the model is an offline one."""
 
 from __future__ import annotations
 
@@ -6,10 +7,13 @@ import argparse
 import json
 from pathlib import Path
 
-from zk0.assets import ensure_dataset
+from zk0.artifacts import save_checkpoint
+from zk0.assets import default_cache_root, ensure_dataset
 from zk0.assets.datasets import SPECS
 from zk0.client import build_client
-from zk0.config import RunConfig
+from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.data import open_metadata
+from zk0.policy import build_policy
 from zk0.registry import DatasetEntry, Registry, load_registry
 from zk0.training import LocalTrainer
 
@@ -25,7 +29,28 @@ def add_client_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--compile", action="store_true", help="torch.compile the training forward (run-config compile)"
     )
+    parser.add_argument(
+        "--peft", choices=["none", "lora"], default="none", help="lora: LoRA adapters (run-config peft)"
+    )
     parser.add_argument("--json", help="also write the figures to this JSON file")
+
+
+def starting_checkpoint(model: str) -> str:
+    """A pretrained-model directory to adapt with LoRA: ``model`` itself, or for an offline model
+    (random weights, which lerobot will not adapt) that model saved once as a checkpoint under
+    ``$ZK0_CACHE/bench`` — the same weights every benchmark run, so their figures compare."""
+    if model not in OFFLINE_MODELS:
+        return model
+    root = default_cache_root() / "bench" / f"{model}-start"
+    checkpoint = root / "models" / "checkpoint_round_0"
+    if not (checkpoint / "model.safetensors").is_file():
+        registry = load_registry()
+        entry = registry.clients[0]
+        bundle = build_policy(
+            RunConfig(model=model, device="cpu"), open_metadata(entry), entry, registry.model_cameras()
+        )
+        save_checkpoint(bundle, root, 0, {})
+    return str(checkpoint)
 
 
 def bench_entry(registry: Registry, name: str | None) -> DatasetEntry:
@@ -40,12 +65,20 @@ def bench_entry(registry: Registry, name: str | None) -> DatasetEntry:
     return registry.get(name)
 
 
-def bench_client(args: argparse.Namespace, local_steps: int) -> tuple[LocalTrainer, Registry, DatasetEntry]:
-    """A client's ``LocalTrainer`` (policy, processors, dataset split, loader, optimizer) for ``args``."""
+def bench_client(
+    args: argparse.Namespace, local_steps: int, peft: str | None = None
+) -> tuple[LocalTrainer, Registry, DatasetEntry]:
+    """A client's ``LocalTrainer`` (policy, processors, dataset split, loader, optimizer) for ``args``.
+
+    With ``--peft lora`` the model is the LoRA starting checkpoint, also when ``peft`` overrides
+    ``--peft`` (``"none"``: the same weights trained in full, to compare with).
+    """
     registry = load_registry()
     entry = bench_entry(registry, args.dataset)
+    model = "full-size" if args.full_size else "tiny"
     run = RunConfig(
-        model="full-size" if args.full_size else "tiny",
+        model=starting_checkpoint(model) if args.peft == "lora" else model,
+        peft=peft or args.peft,
         batch_size=args.batch_size,
         num_workers=args.num_workers,
         frame_cache_gb=args.frame_cache_gb,

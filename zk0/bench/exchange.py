@@ -6,7 +6,11 @@ then for each wire dtype measures the bytes per client per direction, the client
 time, and the server's decode + FedAvg time for ``--clients`` updates (Flower's own
 ``aggregate_arrayrecords``), against the whole state dict the seed project sent.
 
-    python -m zk0.bench.exchange [--full-size] [--clients 4] [--repeat 3] [--json out.json]
+With ``--peft lora`` the model is first saved as a pretrained starting point (lerobot adapts only
+pretrained weights) and the bytes of LoRA's adapters, in both averaging modes, are measured
+next to the same weights trained in full.
+
+    python -m zk0.bench exchange [--full-size] [--peft lora] [--clients 4] [--repeat 3] [--json out.json]
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import torch
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
+from zk0.bench.client import starting_checkpoint
 from zk0.config import RunConfig
 from zk0.data import open_metadata
 from zk0.errors import OneSentenceParser
@@ -56,9 +61,26 @@ def measure(tensors: dict[str, torch.Tensor], wire_dtype: str, clients: int, rep
     }
 
 
+def variants(args) -> list[tuple[str, RunConfig]]:
+    """What to measure: the trainable weights, and with ``--peft lora`` the same starting weights
+    trained in full next to LoRA's two averaging modes (zk0.adapters)."""
+    model = "full-size" if args.full_size else "tiny"
+    if args.peft == "none":
+        return [("full", RunConfig(model=model, device="cpu"))]
+    start = starting_checkpoint(model)
+    lora = {"peft": "lora", "lora_rank": args.lora_rank}
+    return [
+        ("full", RunConfig(model=start, device="cpu")),
+        ("lora b", RunConfig(model=start, device="cpu", lora_average="b", **lora)),
+        ("lora ab", RunConfig(model=start, device="cpu", lora_average="ab", **lora)),
+    ]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench exchange", description=__doc__.split("\n\n")[0])
     parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
+    parser.add_argument("--peft", choices=["none", "lora"], default="none", help="lora: also LoRA's adapters")
+    parser.add_argument("--lora-rank", type=int, default=RunConfig.lora_rank)
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--json", help="also write the figures to this JSON file")
@@ -66,35 +88,49 @@ def main(argv: list[str] | None = None) -> int:
 
     registry = load_registry()
     entry = registry.get("synth-so100-eval")
-    run = RunConfig(model="full-size" if args.full_size else "tiny", device="cpu")
-    started = time.perf_counter()
-    bundle = build_policy(run, open_metadata(entry), entry, registry.model_cameras())
-    build_s = time.perf_counter() - started
-    tensors = trainable_tensors(bundle)
-    state = bundle.policy.state_dict()
-    total = {
-        "model": run.model,
-        "parameters": sum(p.numel() for p in bundle.policy.parameters()),
-        "trainable": sum(t.numel() for t in tensors.values()),
-        "state-dict-tensors": len(state),
-        "state-dict-bytes-fp32": sum(t.numel() * 4 for t in state.values()),
-        "build-s": build_s,
-    }
-    rows = [measure(tensors, dtype, args.clients, args.repeat) for dtype in ("float32", "bfloat16")]
+    totals, rows = [], []
+    for label, run in variants(args):
+        started = time.perf_counter()
+        bundle = build_policy(run, open_metadata(entry), entry, registry.model_cameras())
+        build_s = time.perf_counter() - started
+        tensors = trainable_tensors(bundle)
+        state = bundle.policy.state_dict()
+        totals.append(
+            {
+                "variant": label,
+                "model": run.model,
+                "parameters": sum(p.numel() for p in bundle.policy.parameters()),
+                "trainable": sum(t.numel() for t in tensors.values()),
+                "trainable-tensors": len(tensors),
+                "state-dict-tensors": len(state),
+                "state-dict-bytes-fp32": sum(t.numel() * 4 for t in state.values()),
+                "build-s": build_s,
+            }
+        )
+        rows += [
+            {"variant": label, **measure(tensors, dtype, args.clients, args.repeat)}
+            for dtype in ("float32", "bfloat16")
+        ]
+        del bundle, state, tensors
 
+    for total in totals:
+        print(
+            f"{total['variant']:>8}: {total['parameters']:,} parameters, {total['trainable']:,} trainable "
+            f"({total['trainable-tensors']} of {total['state-dict-tensors']} tensors); built in {total['build-s']:.1f} s"
+        )
     print(
-        f"model {total['model']}: {total['parameters']:,} parameters, {total['trainable']:,} trainable "
-        f"({rows[0]['tensors']} of {total['state-dict-tensors']} tensors); built in {build_s:.1f} s"
+        f"model {totals[0]['model']}; the whole state dict in fp32: {totals[0]['state-dict-bytes-fp32'] / 1e6:,.1f} MB"
     )
-    print(f"the whole state dict in fp32: {total['state-dict-bytes-fp32'] / 1e6:,.1f} MB per direction")
-    print(f"{'wire':>9} {'MB/direction':>13} {'encode s':>9} {'decode s':>9} {f'FedAvg x{args.clients} s':>13}")
+    print(
+        f"{'variant':>8} {'wire':>9} {'MB/direction':>13} {'encode s':>9} {'decode s':>9} {f'FedAvg x{args.clients} s':>13}"
+    )
     for row in rows:
         print(
-            f"{row['wire-dtype']:>9} {row['bytes-per-direction'] / 1e6:>13.2f} {row['encode-s']:>9.3f} "
+            f"{row['variant']:>8} {row['wire-dtype']:>9} {row['bytes-per-direction'] / 1e6:>13.3f} {row['encode-s']:>9.3f} "
             f"{row['decode-s']:>9.3f} {row['aggregate-s']:>13.3f}"
         )
     if args.json:
-        Path(args.json).write_text(json.dumps({"model": total, "rows": rows}, indent=2))
+        Path(args.json).write_text(json.dumps({"model": totals[0], "variants": totals, "rows": rows}, indent=2))
     return 0
 
 

@@ -5,7 +5,12 @@ datasets, tiny SmolVLA on the CPU) for several rounds, then prints the server's 
 MSE on its own evaluation dataset after every round next to the MSE of always predicting
 the clients' mean action.
 
+With ``--peft lora`` it compares LoRA with training in full instead: a short full federation
+gives both a common pretrained start, then the full federation and LoRA in both averaging
+modes (zk0.adapters) run the same rounds and steps from it.
+
     python -m zk0.bench learning [--rounds 20] [--local-steps 25] [--json out.json]
+    python -m zk0.bench learning --peft lora [--warmup-rounds 10] [--rounds 10] [--lora-lr 2e-2]
 """
 
 from __future__ import annotations
@@ -41,6 +46,100 @@ def mean_action_baseline(eval_dataset: str, eval_episodes: int) -> float:
     return float(((target - mean) ** 2).mean())
 
 
+def federate(args, rounds: int, name: str, **keys) -> dict | None:
+    """One federation of the learning check (``keys``: more run-config keys); its metric history."""
+    extra = " ".join(f"{key}={value!r}" if isinstance(value, str) else f"{key}={value}" for key, value in keys.items())
+    run_config = (
+        f"num-server-rounds={rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
+        f"lr={args.lr} eval-batches=1000 checkpoint-interval={rounds} min-train-clients={args.clients} "
+        f"wire-dtype='{args.wire_dtype}' {extra}"
+    )
+    started = time.perf_counter()
+    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, "bench.learning")
+    if history is not None:
+        history.update({"wall-s": time.perf_counter() - started, "config": run_config})
+    return history
+
+
+def server_rows(history: dict) -> list[dict]:
+    """The server's evaluation of every evaluated round."""
+    return [{"round": r["round"], **r["server-evaluate"]} for r in history["rounds"] if r.get("server-evaluate")]
+
+
+def sent_bytes(history: dict) -> int:
+    """Bytes one client sent in the last round (its update; the global model it got is the same size)."""
+    last = history["rounds"][-1]["clients"].values()
+    return max(int(c["train"]["update-bytes"]) for c in last if "update-bytes" in c.get("train", {}))
+
+
+def mean_action_check(args) -> int:
+    """The federation against always predicting the clients' mean action."""
+    history = federate(args, args.rounds, "federation")
+    if history is None:
+        return 1
+    baseline = mean_action_baseline("synth-so100-eval", eval_episodes=2)
+    print(f"{'round':>5} {'server action MSE':>18} {'mean-action MSE':>16} {'ratio':>6} {'server policy loss':>19}")
+    rows = []
+    for row in server_rows(history):
+        ratio = row["action-mse"] / baseline
+        rows.append({**row, "baseline-mse": baseline, "ratio": ratio})
+        print(
+            f"{row['round']:>5} {row['action-mse']:>18.2f} {baseline:>16.2f} {ratio:>6.3f} {row['policy-loss']:>19.4f}"
+        )
+    print(
+        f"wall time: {history['wall-s']:.1f} s for {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients; run: {history['run-dir']}"
+    )
+    if args.json:
+        Path(args.json).write_text(
+            json.dumps({"rows": rows, "wall-s": history["wall-s"], "config": history["config"]}, indent=2)
+        )
+    return 0
+
+
+def lora_check(args) -> int:
+    """LoRA against training in full, from a common pretrained start: a short full federation's
+    final checkpoint (adapters on the tiny random-weight backbone would start from nothing)."""
+    warmup = federate(args, args.warmup_rounds, "warmup")
+    if warmup is None:
+        return 1
+    start = str(Path(warmup["run-dir"]) / "models" / f"checkpoint_round_{args.warmup_rounds}")
+    lora = {"peft": "lora", "lora-rank": args.lora_rank, "lr": args.lora_lr}
+    variants = {
+        "full": {},
+        "lora b": {**lora, "lora-average": "b"},
+        "lora ab": {**lora, "lora-average": "ab"},
+    }
+    results = {}
+    for label, keys in variants.items():
+        history = federate(args, args.rounds, label.replace(" ", "-"), model=start, **keys)
+        if history is None:
+            return 1
+        rows = server_rows(history)
+        results[label] = {
+            "start-mse": rows[0]["action-mse"],
+            "final-mse": rows[-1]["action-mse"],
+            "final-policy-loss": rows[-1]["policy-loss"],
+            "bytes-per-direction": sent_bytes(history),
+            "wall-s": history["wall-s"],
+            "rows": rows,
+            "config": history["config"],
+        }
+    full = results["full"]["final-mse"]
+    print(
+        f"start: round {args.warmup_rounds} of a full federation, server action MSE {results['full']['start-mse']:.2f}; "
+        f"then {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients each"
+    )
+    print(f"{'variant':>8} {'final MSE':>10} {'vs full':>8} {'policy loss':>12} {'bytes/direction':>16} {'wall s':>7}")
+    for label, r in results.items():
+        print(
+            f"{label:>8} {r['final-mse']:>10.2f} {r['final-mse'] / full:>8.3f} {r['final-policy-loss']:>12.4f} "
+            f"{r['bytes-per-direction']:>16,} {r['wall-s']:>7.1f}"
+        )
+    if args.json:
+        Path(args.json).write_text(json.dumps({"warmup-rounds": args.warmup_rounds, "results": results}, indent=2))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench learning", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=20)
@@ -49,39 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lr", type=float, default=2e-3)
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
+    parser.add_argument("--peft", choices=["none", "lora"], default="none", help="lora: LoRA against training in full")
+    parser.add_argument("--warmup-rounds", type=int, default=10, help="--peft lora: rounds of the common start")
+    parser.add_argument("--lora-rank", type=int, default=16)
+    parser.add_argument("--lora-lr", type=float, default=2e-2, help="--peft lora: the adapters' learning rate")
     parser.add_argument("--output-dir", default="outputs/bench-learning")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
-
-    run_config = (
-        f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
-        f"lr={args.lr} eval-batches=1000 checkpoint-interval={args.rounds} min-train-clients={args.clients} "
-        f"wire-dtype='{args.wire_dtype}'"
-    )
-    started = time.perf_counter()
-    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve(), "bench.learning")
-    wall = time.perf_counter() - started
-    if history is None:
-        return 1
-    baseline = mean_action_baseline("synth-so100-eval", eval_episodes=2)
-
-    print(f"{'round':>5} {'server action MSE':>18} {'mean-action MSE':>16} {'ratio':>6} {'server policy loss':>19}")
-    rows = []
-    for record in history["rounds"]:
-        server = record.get("server-evaluate")
-        if not server:
-            continue
-        ratio = server["action-mse"] / baseline
-        rows.append({"round": record["round"], **server, "baseline-mse": baseline, "ratio": ratio})
-        print(
-            f"{record['round']:>5} {server['action-mse']:>18.2f} {baseline:>16.2f} {ratio:>6.3f} {server['policy-loss']:>19.4f}"
-        )
-    print(
-        f"wall time: {wall:.1f} s for {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients; run: {history['run-dir']}"
-    )
-    if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "wall-s": wall, "config": run_config}, indent=2))
-    return 0
+    return lora_check(args) if args.peft == "lora" else mean_action_check(args)
 
 
 if __name__ == "__main__":

@@ -7,13 +7,15 @@ machine noise hits them alike:
   cache, frames to the device as uint8, preprocessing, FedProx hooks, ``update_policy``);
 - ``plain+data``: lerobot's loop as its train script runs it, over lerobot's own data path
   (a DataLoader that decodes video for every sample, frames made float on the host);
-- ``plain``: ``update_policy`` on one pre-loaded, preprocessed batch (the compute floor).
+- ``plain``: ``update_policy`` on one pre-loaded, preprocessed batch (the compute floor);
+- ``zk0 full`` (with ``--peft lora``): the client trained in full from the same starting weights,
+  so the LoRA client's step compares with the full one's in the same run.
 
 The ratio zk0 / plain is what a GPU client should keep near 1. ``--dataset synth-so100-480p``
 decodes an SO-100's real camera size (480x640, two cameras) instead of the tiny test videos.
 
     python -m zk0.bench step [--full-size] [--dataset NAME] [--batch-size 8] [--steps 10] [--blocks 3]
-                             [--num-workers 0] [--frame-cache-gb 20] [--json out.json]
+                             [--num-workers 0] [--frame-cache-gb 20] [--peft lora] [--json out.json]
 """
 
 from __future__ import annotations
@@ -86,27 +88,35 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     trainer, _, entry = bench_client(args, local_steps=args.steps * args.blocks * 3 + 10)
+    # With --peft lora, the same starting weights trained in full, interleaved with the LoRA client.
+    full = bench_client(args, args.steps * args.blocks + 10, peft="none")[0] if args.peft == "lora" else None
     run, bundle, meta = trainer.run, trainer.bundle, trainer.split.meta
     decoding = open_split(entry, meta, bundle.policy.config, replace(run, frame_cache_gb=0)).train
     lerobot_loader = train_loader(decoding, run, bundle.device)
     preloaded = bundle.preprocessor(lerobot_batch(next(iter(lerobot_loader)), meta.camera_keys))
     zk0_steps(trainer, 2)  # warm-up: first-call allocations, decoder and worker start-up
     plain_steps(trainer, 2, lerobot_loader)
+    if full:
+        zk0_steps(full, 2)
 
-    times: dict[str, list[float]] = {"zk0": [], "plain+data": [], "plain": []}
+    times: dict[str, list[float]] = {"zk0": [], "plain+data": [], "plain": []} | ({"zk0 full": []} if full else {})
     for _ in range(args.blocks):
         times["zk0"].append(zk0_steps(trainer, args.steps))
+        if full:
+            times["zk0 full"].append(zk0_steps(full, args.steps))
         times["plain+data"].append(plain_steps(trainer, args.steps, lerobot_loader))
         times["plain"].append(plain_steps(trainer, args.steps, None, preloaded))
     median = {name: statistics.median(values) for name, values in times.items()}
 
     print(
-        f"model {run.model} on {bundle.device}, dataset {entry.name}, batch {run.batch_size}, "
+        f"model {run.model} (peft {run.peft}) on {bundle.device}, dataset {entry.name}, batch {run.batch_size}, "
         f"{args.blocks} blocks x {args.steps} steps, {loader_workers(run)} DataLoader workers"
     )
     print(f"{'loop':>11} {'s/step':>9} {'samples/s':>10} {'vs plain':>9}")
     for name, value in median.items():
         print(f"{name:>11} {value:>9.4f} {run.batch_size / value:>10.1f} {value / median['plain']:>9.3f}")
+    if full:
+        print(f"LoRA step / full-trainable step (zk0's client, same weights): {median['zk0'] / median['zk0 full']:.3f}")
     memory = peak_memory(bundle.device)
     print(f"peak GPU {memory['peak-gpu-gib']:.2f} GiB, host RSS {memory['host-rss-gib']:.2f} GiB")
     figures = {"device": str(bundle.device), "dataset": entry.name, "median-s": median, "times": times}
