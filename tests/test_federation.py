@@ -78,7 +78,11 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     assert {"policy-loss", "action-mse"} <= set(last["server-evaluate"])
     assert {"policy-loss", "action-mse"} <= set(last["aggregate-evaluate"])
     models = run / "models"
-    assert sorted(p.name for p in models.iterdir()) == ["checkpoint_round_1", "checkpoint_round_2"]
+    assert sorted(p.name for p in models.iterdir()) == ["best", "checkpoint_round_1", "checkpoint_round_2"]
+    best = last["best"]
+    assert best["action-mse"] == min(r["server-evaluate"]["action-mse"] for r in history["rounds"])
+    said = "no round beat the starting model" if best["round"] == 0 else f"models/best is round {best['round']}"
+    assert said in log.split("Done: outputs in")[-1]
 
     checkpoint = models / "checkpoint_round_2"
     policy = SmolVLAPolicy.from_pretrained(checkpoint)
@@ -112,7 +116,7 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
 
     # Without HF_TOKEN the Hub folder is staged (a loadable lerobot model dir with its card), not pushed.
     assert log.count("hf-repo-id is set but HF_TOKEN is not") == 1
-    staged = run / "hub" / "round_2"
+    staged = run / "hub" / f"best_round_{best['round']}"  # the run's best model goes to the Hub
     assert SmolVLAPolicy.from_pretrained(staged).config.chunk_size == policy.config.chunk_size
     card = (staged / "README.md").read_text()
     for repo_id in ["zk0/synth_so100_pickplace", "zk0/synth_so100_stacking", "zk0/synth_so100_eval"]:
@@ -129,6 +133,33 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     saved = policy.state_dict()
     for name in trainable:
         assert (start[name].numpy() == saved[name].numpy()).all(), name
+
+
+def test_a_run_that_only_gets_worse_hands_back_round_0(flower_env, tmp_path, registry):
+    """lr = 1 wrecks the model in round 1; models/best stays the starting model, and the run says so."""
+    out = tmp_path / "outputs"
+    log = flwr_run(
+        flower_env,
+        f"num-server-rounds=2 local-steps=3 batch-size=4 lr=1.0 hf-repo-id='zk0-tests/best' output-dir='{out}'",
+        ONE_ACTOR,
+    )
+    runs = list(out.iterdir()) if out.exists() else []
+    assert len(runs) == 1, log[-3000:]
+    run = runs[0]
+    rounds = json.loads((run / "server" / "metrics_history.json").read_text())["rounds"]
+    mse = [r["server-evaluate"]["action-mse"] for r in rounds]
+    assert mse[1] > mse[0] and mse[2] > mse[0], f"the premise: every round is worse than round 0 ({mse})"
+    assert [r["best"] for r in rounds] == [{"round": 0, "action-mse": mse[0]}] * 3
+    assert "no round beat the starting model" in log.split("Done: outputs in")[-1]
+
+    best = run / "models" / "best"
+    assert json.loads((best / "zk0_round.json").read_text())["round"] == 0
+    entry = registry.get("synth-so100-eval")
+    start = get_trainable(build_policy(RunConfig(), open_metadata(entry), entry, registry.model_cameras()))
+    saved = SmolVLAPolicy.from_pretrained(best).state_dict()
+    assert all((saved[n].numpy() == start[n].numpy()).all() for n in start), "models/best holds round 0's weights"
+    card = (run / "hub" / "best_round_0" / "README.md").read_text()
+    assert "| checkpoint | round 0, the lowest server action MSE of rounds 0-2 |" in card
 
 
 def test_bad_run_config_fails_before_training_in_one_sentence(flower_env, tmp_path):

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
+import torch
+from flwr.app import ArrayRecord, MetricRecord
+
 from zk0 import round_artifacts
 from zk0.artifacts import History
 from zk0.config import RunConfig
@@ -27,3 +30,48 @@ def test_each_round_ends_with_a_line_a_person_reads(tmp_path, monkeypatch):
     assert artifacts.progress(2) == (
         "Round 2/4: 1 client trained, train loss -, server action MSE not evaluated, 35.0 s/round, about 1m 10s left"
     )
+
+
+def test_models_best_keeps_the_lowest_server_mse_round_zero_included(tmp_path, client_parts, registry):
+    """Round 0 (the starting model) is the best until a round beats it; models/best is rewritten only
+    then, holds that round's weights and says which round it is; a worse round changes nothing."""
+    import json
+
+    from safetensors.torch import load_file
+
+    from zk0.policy import get_trainable
+    from zk0.tracking import Tracker
+
+    bundle = client_parts[0]
+    run = RunConfig(num_server_rounds=3, checkpoint_interval=10)
+    history = History(tmp_path, {0: registry.clients[0].name}, {})
+    artifacts = RoundArtifacts(
+        run, registry, bundle, registry.get(run.server_eval_dataset), history, Tracker.start(run, tmp_path), {}, 1
+    )
+    start = get_trainable(bundle)
+    names = list(start)
+    rounds = {r: ArrayRecord({n: t + 0.01 * r for n, t in start.to_torch_state_dict().items()}) for r in (1, 2, 3)}
+    best = tmp_path / "models" / "best"
+
+    def best_weights():
+        saved = load_file(best / "model.safetensors")
+        return {n: saved[n] for n in names}
+
+    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0, "policy-loss": 1.0}))
+    artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 80.0, "policy-loss": 2.0}))
+    assert json.loads((best / "zk0_round.json").read_text())["round"] == 0
+    assert all(torch.equal(best_weights()[n], torch.from_numpy(start[n].numpy())) for n in names)
+    assert artifacts.summary() == (
+        "no round beat the starting model (server action MSE 50), so models/best is round 0, the model this run started from"
+    )
+    artifacts.round_ended(2, rounds[2], MetricRecord({"action-mse": 40.0, "policy-loss": 0.5}))
+    artifacts.round_ended(3, rounds[3], MetricRecord({"action-mse": 45.0, "policy-loss": 0.4}))
+    assert json.loads((best / "zk0_round.json").read_text()) == {
+        "round": 2,
+        "server-evaluate": {"action-mse": 40.0, "policy-loss": 0.5},
+    }
+    assert all(torch.equal(best_weights()[n], torch.from_numpy(rounds[2][n].numpy())) for n in names)
+    assert artifacts.summary() == "models/best is round 2 (server action MSE 40; round 0: 50)"
+    recorded = json.loads((tmp_path / "server" / "metrics_history.json").read_text())["rounds"]
+    assert [r["best"]["round"] for r in recorded] == [0, 0, 2, 2]
+    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == ["best", "checkpoint_round_3"]

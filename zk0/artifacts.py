@@ -5,6 +5,7 @@ Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
     server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
     clients/client_<i>/client.log (written by the client), round_<N>.json
     models/checkpoint_round_<N>/   a lerobot pretrained-model directory (LoRA: merged, adapter/ beside)
+    models/best/                   the same, of the round with the lowest server action MSE (round 0 included)
 
 JSON and charts are rewritten after every round, so an interrupted run keeps them;
 checkpoints are written under a temporary name and renamed; nothing is pickled.
@@ -137,16 +138,28 @@ def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, wi
         ax.plot(*zip(*points, strict=True), style, marker="o", linewidth=width, label=label)
 
 
-def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int, client_stats: dict[str, dict]) -> Path:
+ROUND_FILE = "zk0_round.json"  # in every checkpoint: the round it holds and the server's evaluation of it
+
+
+def save_checkpoint(
+    bundle: PolicyBundle,
+    run_dir: Path,
+    server_round: int,
+    client_stats: dict[str, dict],
+    name: str | None = None,
+    evaluation: dict | None = None,
+) -> Path:
     """A lerobot pretrained-model directory, written to a temporary name and renamed into place.
 
     A LoRA policy is saved with its adapters merged in (and alone under ``adapter/``), so the
-    directory loads like any other. Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
+    directory loads like any other. ``name`` (default ``checkpoint_round_<N>``) is its folder under
+    ``models/``; ``zk0_round.json`` says which round it holds and how the server evaluated it.
+    Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
     client's own statistics, so a robot owner can run the policy normalised for their robot.
     """
     models = run_dir / "models"
     models.mkdir(parents=True, exist_ok=True)
-    final = models / f"checkpoint_round_{server_round}"
+    final = models / (name or f"checkpoint_round_{server_round}")
     staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=models))
     try:
         adapters.merged(bundle.policy).save_pretrained(staging)
@@ -154,8 +167,9 @@ def save_checkpoint(bundle: PolicyBundle, run_dir: Path, server_round: int, clie
             adapters.save_adapter(bundle.policy, staging / adapters.ADAPTER_DIR)
         bundle.preprocessor.save_pretrained(staging)
         bundle.postprocessor.save_pretrained(staging)
-        for name, stats in client_stats.items():
-            write_json(staging / "client_stats" / f"{name}.json", serialize_dict(stats))
+        for client, stats in client_stats.items():
+            write_json(staging / "client_stats" / f"{client}.json", serialize_dict(stats))
+        write_json(staging / ROUND_FILE, {"round": server_round, "server-evaluate": evaluation or {}})
         if final.exists():
             shutil.rmtree(final)
         staging.rename(final)

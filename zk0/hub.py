@@ -1,7 +1,8 @@
 """Model card and Hugging Face Hub upload of the federated policy.
 
-When ``hf-repo-id`` is set, the final checkpoint (and with ``hf-push-every-checkpoint``
-each checkpoint, tagged ``round-N``) is staged as a lerobot model directory with a
+When ``hf-repo-id`` is set, the run's best model at its end (``models/best``: the round with the
+lowest server action MSE, staged as ``hub/best_round_<N>``) and with ``hf-push-every-checkpoint``
+each checkpoint, tagged ``round-N`` (``hub/round_<N>``), is staged as a lerobot model directory with a
 generated model card and the charts, then uploaded with ``huggingface_hub`` if
 ``HF_TOKEN`` is set. Without a token the staged folder stays on disk and one warning
 says so. The token is read from the environment by huggingface_hub and never logged.
@@ -45,7 +46,7 @@ trained locally with FedProx (mu = {mu}); the server averaged the trainable para
 | batch size / learning rate | {batch_size} / {lr} |
 | FedProx mu | {mu} |
 | clients | {num_clients} |
-| checkpoint | round {round} |
+| checkpoint | {checkpoint} |
 
 ## Datasets
 
@@ -82,7 +83,9 @@ Name your cameras after the model's inputs (`camera1`, `camera2`, ...) or pass l
 """
 
 
-def model_card(run: RunConfig, repo_id: str, entries: list[DatasetEntry], server_round: int, final: dict | None) -> str:
+def model_card(
+    run: RunConfig, repo_id: str, entries: list[DatasetEntry], server_round: int, final: dict | None, best: bool
+) -> str:
     """A Hub model card: base model, every dataset with its revision, the run's settings and results."""
     rows = "\n".join(
         f"| {e.role} | `{e.repo_id}` | `{e.revision or 'local'}` | "
@@ -103,7 +106,8 @@ def model_card(run: RunConfig, repo_id: str, entries: list[DatasetEntry], server
         local_steps=run.local_steps,
         batch_size=run.batch_size,
         lr=run.lr,
-        round=server_round,
+        checkpoint=f"round {server_round}"
+        + (f", the lowest server action MSE of rounds 0-{run.num_server_rounds}" if best else ""),
         dataset_rows=rows,
         eval_dataset=eval_dataset,
         metrics=metrics,
@@ -152,13 +156,15 @@ def publish(
     entries: list[DatasetEntry],
     final: dict | None,
     push: bool,
+    tag: bool = False,
 ) -> Path:
-    """Stage ``checkpoint`` for the Hub under ``run_dir/hub/round_<N>``; upload it if ``push``."""
-    card = model_card(run, run.hf_repo_id, entries, server_round, final)
+    """Stage the run's best model (``hub/best_round_<N>``), or with ``tag`` a round's checkpoint
+    (``hub/round_<N>``, tagged ``round-N`` on the Hub); upload it if ``push``."""
+    card = model_card(run, run.hf_repo_id, entries, server_round, final, best=not tag)
     charts = [run_dir / "server" / "policy_loss.png", run_dir / "server" / "action_mse.png"]
-    staged = stage(checkpoint, card, charts, run_dir / "hub" / f"round_{server_round}")
+    staged = stage(checkpoint, card, charts, run_dir / "hub" / f"{'' if tag else 'best_'}round_{server_round}")
     logger.info("Round {} staged for the Hub in {}", server_round, staged)
     if push:
-        url = upload(staged, run.hf_repo_id, server_round, tag=run.hf_push_every_checkpoint)
+        url = upload(staged, run.hf_repo_id, server_round, tag=tag)
         logger.info("Round {} pushed to the Hub: {}", server_round, url)
     return staged

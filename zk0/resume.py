@@ -20,6 +20,7 @@ from lerobot.datasets.io_utils import cast_stats_to_numpy
 from safetensors.torch import load_file
 
 from zk0 import adapters
+from zk0.artifacts import ROUND_FILE
 from zk0.config import ConfigError
 from zk0.policy import PolicyBundle, get_trainable
 
@@ -36,6 +37,7 @@ class ResumePoint:
     checkpoint: Path
     rounds: dict[int, dict]
     client_stats: dict[int, dict]
+    best: dict | None  # {"round", "action-mse"} of the run's models/best, if it has one
 
     def trainable(self, bundle: PolicyBundle) -> ArrayRecord:
         """The checkpoint's trainable tensors, under the policy's parameter names (a LoRA run's
@@ -73,4 +75,14 @@ def find_resume_point(resume_from: str) -> ResumePoint:
         for p in (checkpoint / "client_stats").glob("*.json")
         if (m := CLIENT_STATS.fullmatch(p.stem))
     }
-    return ResumePoint(run_dir, last, checkpoint, rounds, stats)
+    return ResumePoint(run_dir, last, checkpoint, rounds, stats, best_so_far(run_dir))
+
+
+def best_so_far(run_dir: Path) -> dict | None:
+    """The round ``models/best`` holds and its server action MSE. It may come from a round after the
+    resume point (run again now); it is still the best model this run folder has seen."""
+    info = run_dir / "models" / "best" / ROUND_FILE
+    if not info.is_file():
+        return None
+    record = json.loads(info.read_text())
+    return {"round": record["round"], "action-mse": record["server-evaluate"]["action-mse"]}

@@ -1,5 +1,9 @@
-"""What the server keeps of every round: clients' records, JSON and charts, checkpoints, the Hub
-staging, W&B, and one progress line a person reads.
+"""What the server keeps of every round: clients' records, JSON and charts, checkpoints, the best
+model so far, the Hub staging, W&B, and one progress line a person reads.
+
+The best model is the one with the lowest server action MSE of every evaluated round, round 0
+(the starting model) included, kept in ``models/best``: a run that starts from a pretrained
+model never hands back one that does worse on the server's evaluation set than where it began.
 
 ``RoundArtifacts`` is the observer ``zk0.aggregation.ValidatingFedProx`` calls: with the client
 replies each phase counted or lost (``record_clients``), and once a round is over, after Flower's
@@ -9,6 +13,7 @@ given, so a simulation and a deployment leave the same files.
 
 from __future__ import annotations
 
+import json
 import time
 
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
@@ -16,7 +21,7 @@ from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
-from zk0.artifacts import History, save_checkpoint
+from zk0.artifacts import ROUND_FILE, History, save_checkpoint
 from zk0.config import RunConfig
 from zk0.hub import can_push, publish
 from zk0.policy import PolicyBundle, set_trainable
@@ -39,11 +44,14 @@ class RoundArtifacts:
         tracker: Tracker,
         client_stats: dict[int, dict],
         first_round: int,
+        best: dict | None = None,
     ):
         self.run, self.registry, self.bundle, self.eval_entry = run, registry, bundle, eval_entry
         self.history, self.tracker = history, tracker
         self.client_stats = client_stats  # dataset index -> that client's normalisation statistics
         self.first_round = first_round  # this process's first round (a resumed run's is not 1)
+        self.best = best  # {"round", "action-mse"} of models/best (a resumed run's, read from its folder)
+        self.start_mse: float | None = None  # round 0's server action MSE
         self.push = can_push(run)
         self.started = time.perf_counter()
 
@@ -72,25 +80,68 @@ class RoundArtifacts:
         self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         if evaluation is not None:
             self.history.add(server_round, "server-evaluate", dict(evaluation))
+            self.keep_if_best(server_round, arrays, dict(evaluation))
+        self.history.add(server_round, "best", self.best)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
         if self.run.checkpoints_in(server_round):
             self.checkpoint(server_round, arrays, evaluation)
+        if server_round == self.run.num_server_rounds and self.run.hf_repo_id:
+            self.publish_best()
         self.tracker.log(server_round, self.history.round(server_round))
         if server_round:
             logger.info(self.progress(server_round))
 
     def checkpoint(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
-        """A lerobot pretrained-model directory of the global model, staged (and pushed) for the Hub."""
+        """A lerobot pretrained-model directory of the global model (staged and pushed for the Hub,
+        tagged, with ``hf-push-every-checkpoint``)."""
+        path = self.save(server_round, arrays, None, dict(evaluation) if evaluation else None)
+        logger.info("Round {} checkpoint: {}", server_round, path)
+        if self.run.hf_repo_id and self.run.hf_push_every_checkpoint:
+            metrics = dict(evaluation) if evaluation else None
+            publish(self.run, self.history.run_dir, path, server_round, self.entries(), metrics, self.push, tag=True)
+
+    def keep_if_best(self, server_round: int, arrays: ArrayRecord, evaluation: dict) -> None:
+        """Write ``models/best`` when this round's server action MSE is the lowest so far."""
+        mse = float(evaluation["action-mse"])
+        if server_round == 0:
+            self.start_mse = mse
+        if self.best is not None and mse >= self.best["action-mse"]:
+            return
+        self.save(server_round, arrays, "best", evaluation)
+        self.best = {"round": server_round, "action-mse": mse}
+
+    def save(self, server_round: int, arrays: ArrayRecord, name: str | None, evaluation: dict | None):
         set_trainable(self.bundle, arrays)
         names = self.history.client_names
         per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(self.client_stats.items())}
-        path = save_checkpoint(self.checkpoint_bundle(), self.history.run_dir, server_round, per_client)
-        logger.info("Round {} checkpoint: {}", server_round, path)
-        if self.run.hf_repo_id and (self.run.hf_push_every_checkpoint or server_round == self.run.num_server_rounds):
-            entries = [self.registry.get(n) for n in self.history.participants().values()] + [self.eval_entry]
-            metrics = dict(evaluation) if evaluation else None
-            publish(self.run, self.history.run_dir, path, server_round, entries, metrics, self.push)
+        return save_checkpoint(
+            self.checkpoint_bundle(), self.history.run_dir, server_round, per_client, name, evaluation
+        )
+
+    def entries(self) -> list[DatasetEntry]:
+        """The datasets a model card lists: the clients that took part, and the server's."""
+        return [self.registry.get(n) for n in self.history.participants().values()] + [self.eval_entry]
+
+    def publish_best(self) -> None:
+        """At the run's end, the best model (not necessarily the last) goes to the Hub."""
+        if self.best is None:
+            return
+        path = self.history.run_dir / "models" / "best"
+        evaluation = json.loads((path / ROUND_FILE).read_text())["server-evaluate"]
+        publish(self.run, self.history.run_dir, path, self.best["round"], self.entries(), evaluation, self.push)
+
+    def summary(self) -> str:
+        """Which round ``models/best`` holds, as the run's last line says it."""
+        if self.best is None:
+            return "the server evaluated no round, so there is no models/best"
+        start = "" if self.start_mse is None else f"; round 0: {self.start_mse:.4g}"
+        if self.best["round"] == 0:
+            return (
+                f"no round beat the starting model (server action MSE {self.best['action-mse']:.4g}), "
+                "so models/best is round 0, the model this run started from"
+            )
+        return f"models/best is round {self.best['round']} (server action MSE {self.best['action-mse']:.4g}{start})"
 
     def checkpoint_bundle(self) -> PolicyBundle:
         """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
@@ -111,4 +162,5 @@ class RoundArtifacts:
             f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
             f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
+            + (f", best round {self.best['round']}" if self.best else "")
         )

@@ -126,7 +126,9 @@ def main(grid: Grid, context: Context) -> None:
     tracker = Tracker.start(run, run_dir)
     split = open_evaluation(entry, meta, bundle.policy.config, run)
     client_stats = dict(resumed.client_stats) if resumed else {}
-    artifacts = RoundArtifacts(run, registry, bundle, entry, history, tracker, client_stats, first_round=done + 1)
+    artifacts = RoundArtifacts(
+        run, registry, bundle, entry, history, tracker, client_stats, done + 1, resumed.best if resumed else None
+    )
     strategy = ValidatingFedProx(
         expected=array_signature(initial),
         evaluates_in=run.evaluates_in,
@@ -164,4 +166,4 @@ def main(grid: Grid, context: Context) -> None:
         raise
     finally:
         tracker.finish()
-    logger.info("Done: outputs in {}", run_dir)
+    logger.info("Done: outputs in {}; {}.", run_dir, artifacts.summary())

@@ -48,12 +48,18 @@ def mean_action_baseline(eval_dataset: str, eval_episodes: int) -> float:
 
 def federate(args, rounds: int, name: str, **keys) -> dict | None:
     """One federation of the learning check (``keys``: more run-config keys); its metric history."""
-    extra = " ".join(f"{key}={value!r}" if isinstance(value, str) else f"{key}={value}" for key, value in keys.items())
-    run_config = (
-        f"num-server-rounds={rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
-        f"lr={args.lr} eval-batches=1000 checkpoint-interval={rounds} min-train-clients={args.clients} "
-        f"wire-dtype='{args.wire_dtype}' {extra}"
-    )
+    settings = {
+        "num-server-rounds": rounds,
+        "local-steps": args.local_steps,
+        "batch-size": args.batch_size,
+        "lr": args.lr,
+        "eval-batches": 1000,
+        "checkpoint-interval": rounds,
+        "min-train-clients": args.clients,
+        "wire-dtype": args.wire_dtype,
+        **keys,
+    }
+    run_config = " ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
     started = time.perf_counter()
     history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, "bench.learning")
     if history is not None:
