@@ -52,6 +52,7 @@ class RoundArtifacts:
         self.first_round = first_round  # this process's first round (a resumed run's is not 1)
         self.best = best  # {"round", "action-mse"} of models/best (a resumed run's, read from its folder)
         self.start_mse: float | None = None  # round 0's server action MSE
+        self.unsaved: tuple[ArrayRecord, dict] | None = None  # the best model, until written to models/best
         self.push = can_push(run)
         self.started = time.perf_counter()
 
@@ -81,6 +82,9 @@ class RoundArtifacts:
         if evaluation is not None:
             self.history.add(server_round, "server-evaluate", dict(evaluation))
             self.keep_if_best(server_round, arrays, dict(evaluation))
+        if server_round and self.unsaved:  # round 0's model is written once a round has trained
+            self.save(self.best["round"], *self.unsaved, "best")
+            self.unsaved = None
         self.history.add(server_round, "best", self.best)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
@@ -95,23 +99,26 @@ class RoundArtifacts:
     def checkpoint(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
         """A lerobot pretrained-model directory of the global model (staged and pushed for the Hub,
         tagged, with ``hf-push-every-checkpoint``)."""
-        path = self.save(server_round, arrays, None, dict(evaluation) if evaluation else None)
+        path = self.save(server_round, arrays, dict(evaluation) if evaluation else None)
         logger.info("Round {} checkpoint: {}", server_round, path)
         if self.run.hf_repo_id and self.run.hf_push_every_checkpoint:
             metrics = dict(evaluation) if evaluation else None
             publish(self.run, self.history.run_dir, path, server_round, self.entries(), metrics, self.push, tag=True)
 
     def keep_if_best(self, server_round: int, arrays: ArrayRecord, evaluation: dict) -> None:
-        """Write ``models/best`` when this round's server action MSE is the lowest so far."""
+        """Remember this round's model as the best when its server action MSE is the lowest so far
+        (written to ``models/best`` at the round's end; round 0's only once a round trained, so a
+        run that cannot train writes no model)."""
         mse = float(evaluation["action-mse"])
         if server_round == 0:
             self.start_mse = mse
         if self.best is not None and mse >= self.best["action-mse"]:
             return
-        self.save(server_round, arrays, "best", evaluation)
         self.best = {"round": server_round, "action-mse": mse}
+        self.unsaved = (arrays, evaluation)
 
-    def save(self, server_round: int, arrays: ArrayRecord, name: str | None, evaluation: dict | None):
+    def save(self, server_round: int, arrays: ArrayRecord, evaluation: dict | None, name: str | None = None):
+        """``arrays`` as a checkpoint of ``server_round`` (under ``models/<name>``, if named)."""
         set_trainable(self.bundle, arrays)
         names = self.history.client_names
         per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(self.client_stats.items())}
