@@ -64,6 +64,18 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
             "zk0 supernode: the following arguments are required: --dataset; see zk0 supernode --help.",
         ),
         (zk0, ["assets", "--seed", "x"], "zk0 assets: argument --seed: invalid int value: 'x'; see zk0 assets --help."),
+        (
+            bench,
+            ["exchange", "--peft", "lora", "--lora-rank", "0"],
+            "python -m zk0.bench exchange: argument --lora-rank: got '0'; expected int > 0; "
+            "see python -m zk0.bench exchange --help.",
+        ),
+        (
+            bench,
+            ["learning", "--peft", "lora", "--lora-lr", "fast"],
+            "python -m zk0.bench learning: argument --lora-lr: got 'fast'; expected float > 0; "
+            "see python -m zk0.bench learning --help.",
+        ),
     ],
 )
 def test_a_bad_argument_exits_2_with_one_sentence(call, argv, sentence, capsys):

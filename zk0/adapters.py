@@ -73,11 +73,6 @@ def merged(policy: PreTrainedPolicy | PeftModel) -> PreTrainedPolicy:
     return plain
 
 
-def save_adapter(policy: PeftModel, directory: Path) -> None:
-    """The adapters alone, in PEFT's format (``PeftModel.from_pretrained`` on the base loads them)."""
-    policy.save_pretrained(directory)
-
-
 def load_adapter(policy: PeftModel, checkpoint: Path) -> None:
     """Put a checkpoint's adapters (``<checkpoint>/adapter``) into ``policy`` in place."""
     weights = checkpoint / ADAPTER_DIR / "adapter_model.safetensors"

@@ -164,7 +164,7 @@ def save_checkpoint(
     try:
         adapters.merged(bundle.policy).save_pretrained(staging)
         if adapters.is_adapted(bundle.policy):
-            adapters.save_adapter(bundle.policy, staging / adapters.ADAPTER_DIR)
+            bundle.policy.save_pretrained(staging / adapters.ADAPTER_DIR)  # PEFT's format: the adapters alone
         bundle.preprocessor.save_pretrained(staging)
         bundle.postprocessor.save_pretrained(staging)
         for client, stats in client_stats.items():

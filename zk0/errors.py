@@ -22,3 +22,18 @@ class OneSentenceParser(argparse.ArgumentParser):
     def error(self, message: str):
         print(f"{self.prog}: {message}; see {self.prog} --help.", file=sys.stderr)
         sys.exit(2)
+
+
+def positive(kind: type[int] | type[float]):
+    """An argparse ``type``: a number of ``kind`` above 0, or argparse's one-sentence refusal naming it."""
+
+    def parse(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            value = 0
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"got {text!r}; expected {kind.__name__} > 0")
+        return value
+
+    return parse

@@ -27,7 +27,7 @@ from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 from zk0.bench.client import starting_checkpoint
 from zk0.config import RunConfig
 from zk0.data import open_metadata
-from zk0.errors import OneSentenceParser
+from zk0.errors import OneSentenceParser, positive
 from zk0.policy import build_policy, trainable_tensors
 from zk0.registry import load_registry
 from zk0.wire import decode, encode
@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench exchange", description=__doc__.split("\n\n")[0])
     parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
     parser.add_argument("--peft", choices=["none", "lora"], default="none", help="lora: also LoRA's adapters")
-    parser.add_argument("--lora-rank", type=int, default=RunConfig.lora_rank)
+    parser.add_argument("--lora-rank", type=positive(int), default=RunConfig.lora_rank)
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--json", help="also write the figures to this JSON file")

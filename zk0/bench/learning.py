@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from zk0.errors import OneSentenceParser
+from zk0.errors import OneSentenceParser, positive
 from zk0.registry import load_registry
 from zk0.simulation import run_federation
 
@@ -155,9 +155,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--peft", choices=["none", "lora"], default="none", help="lora: LoRA against training in full")
-    parser.add_argument("--warmup-rounds", type=int, default=10, help="--peft lora: rounds of the common start")
-    parser.add_argument("--lora-rank", type=int, default=16)
-    parser.add_argument("--lora-lr", type=float, default=2e-2, help="--peft lora: the adapters' learning rate")
+    parser.add_argument(
+        "--warmup-rounds", type=positive(int), default=10, help="--peft lora: rounds of the common start"
+    )
+    parser.add_argument("--lora-rank", type=positive(int), default=16)
+    parser.add_argument(
+        "--lora-lr", type=positive(float), default=2e-2, help="--peft lora: the adapters' learning rate"
+    )
     parser.add_argument("--output-dir", default="outputs/bench-learning")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
