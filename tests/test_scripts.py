@@ -109,8 +109,15 @@ def test_ctrl_c_stops_the_run_and_prints_the_command_that_continues_it(tmp_path)
     overrides = (
         f"num-server-rounds=4 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1 output-dir='{out}'"
     )
+    # As from a terminal: a shell that inherits an ignored SIGINT (pytest started in the background
+    # by a non-interactive shell, as `cmd &` does) cannot trap it, so the test puts the default back.
     first = subprocess.Popen(
-        [TRAIN, "-r", overrides], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        [TRAIN, "-r", overrides],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.monotonic() + 600
     while not list(out.glob("*/models/checkpoint_round_1")):
