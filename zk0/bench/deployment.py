@@ -11,7 +11,7 @@ evaluation, and handing the message to the warm worker and back. The fixed cost 
 round is everything that is not local steps or evaluation.
 
     python -m zk0.bench deployment [--model full-size] [--rounds 3] [--local-steps 30] [--clients 2]
-        [--batch-size 8] [--cpus-per-node N] [--no-simulation] [--json out.json]
+        [--batch-size 8] [--cpus-per-node N] [--peft lora] [--no-simulation] [--json out.json]
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from zk0.bench.client import write_json
+from zk0.bench.client import starting_checkpoint, write_json
 from zk0.errors import OneSentenceParser
 from zk0.loopback import loopback_federation
 from zk0.registry import load_registry
@@ -32,10 +32,12 @@ from zk0.simulation import run_federation
 
 
 def run_config(args: argparse.Namespace) -> str:
+    """The run's keys; with ``--peft lora`` from the LoRA starting checkpoint of ``--model``."""
+    model = starting_checkpoint(args.model) if args.peft == "lora" else args.model
     return (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} "
-        f"eval-batches={args.eval_batches} model='{args.model}' min-train-clients={args.clients} "
-        f"checkpoint-interval={args.rounds} num-workers={args.num_workers}"
+        f"eval-batches={args.eval_batches} model='{model}' min-train-clients={args.clients} "
+        f"checkpoint-interval={args.rounds} num-workers={args.num_workers} peft='{args.peft}'"
     )
 
 
@@ -113,6 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--cpus-per-node", type=int, help="zk0 supernode --cpus (default: the machine's CPUs / clients)"
     )
+    parser.add_argument(
+        "--peft", choices=["none", "lora"], default="none", help="lora: LoRA adapters travel (run-config peft)"
+    )
     parser.add_argument("--repeats", type=int, default=1, help="simulation/deployment pairs, interleaved")
     parser.add_argument("--no-simulation", action="store_true", help="deployment only (no Ray on this machine)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' folders (printed) for their logs")
@@ -158,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     figures["deployment"]["messages"] = message_breakdown(runs["deployment"][-1], args.local_steps)
 
     print(
-        f"model {args.model}, {args.clients} clients, {args.rounds} rounds x {args.local_steps} steps, "
+        f"model {args.model} (peft {args.peft}), {args.clients} clients, {args.rounds} rounds x {args.local_steps} steps, "
         f"batch {args.batch_size}, {args.cpus_per_node} CPU(s) per SuperNode"
     )
     for mode in ("simulation", "deployment"):
