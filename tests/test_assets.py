@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import hashlib
 
+import numpy as np
 import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from transformers import AutoProcessor
 
 from zk0.assets import AssetError, ensure_backbone, ensure_dataset, synthetic_dataset_root
-from zk0.assets.datasets import COLOURS, JOINT_NAMES, SPECS, write_synthetic_dataset
+from zk0.assets.datasets import COLOURS, JOINT_NAMES, NON_IID, SPECS, write_synthetic_dataset
 
 
 @pytest.mark.parametrize("name", sorted(name for name, spec in SPECS.items() if not spec.benchmark_only))
@@ -104,3 +105,41 @@ def test_cli_assets_prints_paths_and_rejects_bad_names(tmp_path, capsys):
     assert str(tmp_path / "backbones" / "tiny-smolvlm") in capsys.readouterr().out
     assert main(["assets", "--cache-dir", str(tmp_path), "--only", "synth-nope"]) == 2
     assert "'synth-nope'" in capsys.readouterr().err
+
+
+def scene_target(dataset: LeRobotDataset, index: int, spec) -> tuple[float, float]:
+    """Where the task's target lies in the scene camera, as fractions of the image."""
+    item = dataset[index]
+    colour = next(c for c in spec.colours if c in item["task"])
+    rgb = torch.tensor(COLOURS[colour], dtype=torch.float32) / 255
+    scene = item[f"observation.images.{spec.cameras[0]}"]
+    ys, xs = torch.nonzero((scene - rgb[:, None, None]).abs().sum(dim=0) < 0.35, as_tuple=True)
+    return float(xs.float().mean()) / (spec.width - 1), float(ys.float().mean()) / (spec.height - 1)
+
+
+@pytest.mark.parametrize("name", sorted(NON_IID))
+def test_each_noniid_client_sees_its_own_quarter_and_moves_at_its_own_rate(name):
+    spec = SPECS[name]
+    dataset = LeRobotDataset(spec.repo_id, root=ensure_dataset(name))
+    x0, x1, y0, y1 = spec.target_region
+    slack = 0.05  # the target square's half-size
+    for episode in range(spec.episodes):
+        u, v = scene_target(dataset, episode * spec.frames_per_episode, spec)
+        assert x0 - slack <= u <= x1 + slack and y0 - slack <= v <= y1 + slack, (episode, u, v)
+
+    # action - state = rate * (goal - state) + noise, and the next state is the action: each step
+    # covers (1 - rate) of the one before. Fitted over the first frames, where steps are large.
+    states, actions = (np.stack(dataset.hf_dataset[key]) for key in ("observation.state", "action"))
+    steps = (actions - states).reshape(spec.episodes, spec.frames_per_episode, -1)[:, :8]
+    now, after = steps[:, :-1].reshape(-1), steps[:, 1:].reshape(-1)
+    assert float(now @ after / (now @ now)) == pytest.approx(1 - spec.approach_rate, abs=0.02)
+
+
+def test_noniid_quarters_are_disjoint_and_the_rates_average_to_the_server_sets():
+    regions = [SPECS[n].target_region for n in NON_IID]
+    for i, (a0, a1, b0, b1) in enumerate(regions):
+        for c0, c1, d0, d1 in regions[i + 1 :]:
+            assert a1 <= c0 or c1 <= a0 or b1 <= d0 or d1 <= b0
+    rates = [SPECS[n].approach_rate for n in NON_IID]
+    assert len(set(rates)) == len(rates)
+    assert sum(rates) / len(rates) == pytest.approx(SPECS["synth-so100-eval"].approach_rate)

@@ -10,11 +10,16 @@ The four client datasets differ the way community SO-100/SO-101 datasets differ
 (task text, colours and where targets lie, camera names, image size, episode count,
 fps); a fifth is held by the server for evaluation. Everything is a pure function of
 the spec and the seed.
+
+``NON_IID`` turns the heterogeneity up for the study (``python -m zk0.bench study``): the same
+four clients, but each sees targets only in its own quarter of the table and its arm
+approaches them at its own rate (as if each owner's teleoperation were faster or slower),
+while the server's evaluation set spans the whole table at the clients' mean rate.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +61,7 @@ class SyntheticSpec:
     fps: int
     target_region: tuple[float, float, float, float]  # x0, x1, y0, y1 as fractions of the image
     benchmark_only: bool = False  # generated on demand by benchmarks, not by `zk0 assets`
+    approach_rate: float = APPROACH_RATE  # how fast the arm closes in on its target (the action dynamics)
 
 
 SPECS: dict[str, SyntheticSpec] = {
@@ -150,6 +156,28 @@ SPECS: dict[str, SyntheticSpec] = {
 }
 
 
+# The study's strongly non-IID clients: (client dataset, its quarter of the table, its approach rate).
+# The quarters are disjoint; the rates average to APPROACH_RATE, the server evaluation set's.
+_NON_IID = (
+    ("synth-so100-pickplace", (0.05, 0.5, 0.1, 0.5), 0.10),
+    ("synth-so100-stacking", (0.5, 0.95, 0.1, 0.5), 0.15),
+    ("synth-so101-sorting", (0.05, 0.5, 0.5, 0.95), 0.25),
+    ("synth-so101-reach", (0.5, 0.95, 0.5, 0.95), 0.30),
+)
+NON_IID: dict[str, SyntheticSpec] = {
+    f"{name}-noniid": replace(
+        SPECS[name],
+        name=f"{name}-noniid",
+        repo_id=f"{SPECS[name].repo_id}_noniid",
+        target_region=region,
+        approach_rate=rate,
+        benchmark_only=True,
+    )
+    for name, region, rate in _NON_IID
+}
+SPECS.update(NON_IID)
+
+
 def target_pose(u: float, v: float, colour_index: int) -> np.ndarray:
     """The joint pose that reaches a target at image fraction (u, v); colour sets the wrist roll."""
     return np.array(
@@ -223,7 +251,7 @@ def write_synthetic_dataset(spec: SyntheticSpec, root: Path, seed: int, episodes
         state = HOME_POSE + rng.normal(0.0, 2.0, size=6).astype(np.float32)
         task = spec.task_template.format(colour=colour)
         for _ in range(spec.frames_per_episode):
-            action = state + APPROACH_RATE * (goal - state) + rng.normal(0.0, 0.3, size=6).astype(np.float32)
+            action = state + spec.approach_rate * (goal - state) + rng.normal(0.0, 0.3, size=6).astype(np.float32)
             frame = {"observation.state": state.copy(), "action": action.astype(np.float32), "task": task}
             for index, cam in enumerate(spec.cameras):
                 frame[f"observation.images.{cam}"] = _render(spec, index, u, v, COLOURS[colour], state, rng)
