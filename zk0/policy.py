@@ -199,9 +199,15 @@ def _pretrained_overrides(cfg: PreTrainedConfig, stats: dict, device: torch.devi
 
 
 def trainable_tensors(bundle: PolicyBundle) -> dict[str, torch.Tensor]:
-    """The trainable parameters (fp32, CPU), in a fixed order."""
+    """The trainable parameters (fp32, CPU), in a fixed order. Where the policy already is fp32 on
+    the CPU these are its parameters' own memory, not a copy (``snapshot`` is)."""
     params = dict(bundle.policy.named_parameters())
     return {name: params[name].detach().to("cpu", torch.float32) for name in bundle.trainable_names}
+
+
+def snapshot(bundle: PolicyBundle) -> dict[str, torch.Tensor]:
+    """A copy of the trainable parameters (fp32, CPU) that later training leaves as it is."""
+    return {name: tensor.clone() for name, tensor in trainable_tensors(bundle).items()}
 
 
 def get_trainable(bundle: PolicyBundle) -> ArrayRecord:

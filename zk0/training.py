@@ -145,6 +145,17 @@ class LocalTrainer:
         params = dict(self.bundle.policy.named_parameters())
         self.fedprox = FedProx({n: params[n] for n in self.bundle.trainable_names})
 
+    @property
+    def dataset_name(self) -> str:
+        """The dataset the batches come from (what a skipped batch's warning names)."""
+        return self.split.entry.name
+
+    def _prepare(self, batch: dict) -> dict:
+        """A loader batch on the device, preprocessed with this client's processors: its camera
+        mapping, task text and normalisation statistics."""
+        meta, bundle = self.split.meta, self.bundle
+        return bundle.preprocessor(prepare_batch(batch, meta.camera_keys, self.split.entry.task, bundle.device))
+
     def _next_batch(self) -> dict:
         if self._batches is None:
             self._batches = iter(self.loader)
@@ -184,7 +195,6 @@ class LocalTrainer:
         self.fedprox.anchor_at(mu)
         set_schedule_step(self.scheduler, global_step)
         tracker = metrics_tracker(self.run.batch_size, self.split.meta.total_frames, self.split.meta.total_episodes)
-        cameras, task = self.split.meta.camera_keys, self.split.entry.task
         done = skipped = samples = 0
         started = time.perf_counter()
         if self.bundle.device.type == "cuda":
@@ -195,10 +205,10 @@ class LocalTrainer:
                 batch = self._next_batch()
             except Exception as err:  # a frame that fails to decode costs a batch, not the round
                 skipped += 1
-                logger.warning("Skipped an unreadable batch from {}: {}", self.split.entry.name, err)
-                check_skips(self.split.entry.name, "training", skipped, done, self.run.max_skip_fraction)
+                logger.warning("Skipped an unreadable batch from {}: {}", self.dataset_name, err)
+                check_skips(self.dataset_name, "training", skipped, done, self.run.max_skip_fraction)
                 continue
-            batch = self.bundle.preprocessor(prepare_batch(batch, cameras, task, self.bundle.device))
+            batch = self._prepare(batch)
             tracker.dataloading_s = time.perf_counter() - t0
             tracker, _ = update_policy(
                 tracker,
@@ -222,6 +232,39 @@ class LocalTrainer:
             "step-time": elapsed / steps,
             **peak_memory(self.bundle.device),
         }
+
+
+@dataclass
+class PooledTrainer(LocalTrainer):
+    """Centralised training, the study's baseline (zk0.bench.study): one policy and one optimizer
+    over every client's data pooled. Batches come in turn from each client's own loader and are
+    preprocessed with that client's own processors, so the camera mapping and normalisation are
+    the ones the federation uses; ``samples_from`` counts what each client contributed."""
+
+    sources: list[LocalTrainer] = field(default_factory=list)
+    samples_from: dict[str, int] = field(init=False, default_factory=dict)
+    _source: LocalTrainer | None = field(init=False, default=None)
+
+    @classmethod
+    def over(cls, bundle: PolicyBundle, sources: list[LocalTrainer], run: RunConfig) -> PooledTrainer:
+        """``bundle``'s policy trained on ``sources``' batches (the first source's split stands in
+        for the loop's bookkeeping: epoch counts in lerobot's metrics tracker)."""
+        return cls(bundle, sources[0].split, sources[0].loader, run, sources=sources)
+
+    @property
+    def dataset_name(self) -> str:
+        return self._source.dataset_name if self._source else self.split.entry.name
+
+    def _next_batch(self) -> dict:
+        self._source = self.sources[self.batches_seen % len(self.sources)]
+        self.batches_seen += 1
+        batch = self._source._next_batch()
+        name = self._source.dataset_name
+        self.samples_from[name] = self.samples_from.get(name, 0) + len(batch["action"])
+        return batch
+
+    def _prepare(self, batch: dict) -> dict:
+        return self._source._prepare(batch)
 
 
 def peak_memory(device: torch.device) -> dict[str, float]:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import sys
 
 from zk0.assets import ensure_all
-from zk0.bench import deployment, exchange, gpu, learning, memory, round, step
+from zk0.bench import deployment, exchange, gpu, learning, memory, round, step, study
 
 BENCHMARKS = {
     "learning": learning.main,
+    "study": study.main,
     "exchange": exchange.main,
     "step": step.main,
     "round": round.main,

@@ -27,6 +27,8 @@ from zk0.errors import OneSentenceParser, positive
 from zk0.registry import load_registry
 from zk0.simulation import run_federation
 
+EVAL_ALL = 1000  # eval-batches: every held-out batch of the synthetic datasets
+
 
 def actions(entry, episodes: list[int] | None = None) -> np.ndarray:
     """Every recorded action of a dataset (or of some of its episodes)."""
@@ -53,7 +55,7 @@ def federate(args, rounds: int, name: str, **keys) -> dict | None:
         "local-steps": args.local_steps,
         "batch-size": args.batch_size,
         "lr": args.lr,
-        "eval-batches": 1000,
+        "eval-batches": EVAL_ALL,
         "checkpoint-interval": rounds,
         "min-train-clients": args.clients,
         "wire-dtype": args.wire_dtype,
@@ -61,7 +63,7 @@ def federate(args, rounds: int, name: str, **keys) -> dict | None:
     }
     run_config = " ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
     started = time.perf_counter()
-    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, "bench.learning")
+    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, f"bench: {name}")
     if history is not None:
         history.update({"wall-s": time.perf_counter() - started, "config": run_config})
     return history

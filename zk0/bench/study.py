@@ -1,0 +1,276 @@
+"""Study: does federating help? The federation against centralised and local-only training.
+
+On the same synthetic clients, model, batch size and number of samples, with one learning rate
+(``--lr``; ``--federation-lr`` gives the federation another), it trains
+
+- the federation, twice, through the real app (``flwr run``, simulated clients): FedProx with
+  ``--proximal-mu`` and FedAvg (``proximal-mu = 0``);
+- **centralised**: one policy and one optimizer on every client's training episodes pooled,
+  taking batches from each client's own loader in turn, each preprocessed with that client's
+  own processors (camera mapping, normalisation), for as many steps as all clients take in the
+  federation together (zk0.training.PooledTrainer);
+- **local-only**: each client alone, for the steps it takes in the federation;
+
+then evaluates every model, and the common starting model, on every client's held-out
+episodes and on the server's evaluation set (action MSE in joint units, and the policy loss),
+exactly as the federation's clients and server evaluate. It does so in two settings:
+``mild``, the default synthetic clients, and ``noniid``, where each client sees targets only in
+its own quarter of the table and its arm approaches them at its own rate
+(configs/noniid-registry.toml). Prints the matrices and writes JSON and a PNG chart.
+
+    python -m zk0.bench study [--settings mild noniid] [--rounds 8] [--local-steps 20]
+        [--clients 4] [--lr 8e-3] [--federation-lr LR] [--output-dir outputs/bench-study]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+
+from zk0.assets import ensure_dataset
+from zk0.bench.learning import EVAL_ALL, federate
+from zk0.client import ClientSession, build_client
+from zk0.config import RunConfig
+from zk0.data import eval_loader, open_evaluation, open_metadata
+from zk0.errors import OneSentenceParser, positive
+from zk0.policy import PolicyBundle, build_policy, set_trainable, snapshot
+from zk0.registry import PROJECT_ROOT, Registry, load_registry
+from zk0.resume import find_resume_point
+from zk0.training import PooledTrainer, evaluate
+
+SETTINGS = {"mild": "", "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml")}
+SERVER = "server"
+Weights = dict[str, torch.Tensor]
+
+
+def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
+    """The in-process baselines' config: the federation's own keys (zk0.bench.learning.federate)."""
+    return RunConfig(
+        num_server_rounds=args.rounds,
+        local_steps=args.local_steps,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        eval_batches=EVAL_ALL,
+        registry=registry,
+        min_train_clients=args.clients,
+    )
+
+
+def generate(registry: Registry) -> None:
+    """The setting's synthetic datasets, generated once (the non-IID ones are not in `zk0 assets`);
+    all of them, as the server checks every client dataset of the registry before round 1."""
+    for entry in registry.entries:
+        if entry.synthetic:
+            ensure_dataset(entry.name)
+
+
+def federated_models(
+    args: argparse.Namespace, setting: str, registry: str, server: PolicyBundle
+) -> dict[str, tuple[Weights, dict]] | None:
+    """FedProx and FedAvg through ``flwr run``: each final global model and the run's history
+    (None, after Flower's log and one sentence, if a federation failed)."""
+    models = {}
+    for label, mu in (("FedProx", args.proximal_mu), ("FedAvg", 0.0)):
+        keys = {"proximal-mu": mu, "registry": registry, "eval-frequency": args.rounds, "lr": args.federation_lr}
+        history = federate(args, args.rounds, f"{setting}-{label.lower()}", **keys)
+        if history is None:
+            return None
+        final = find_resume_point(history["run-dir"]).trainable(server).to_torch_state_dict()
+        models[label] = (final, history)
+    return models
+
+
+def centralised(
+    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str]
+) -> tuple[Weights, dict[str, int]]:
+    """One policy trained on every client's batches in turn, as many steps as all clients take together;
+    its weights and the samples it took from each client."""
+    pooled_run = replace(run, local_steps=run.local_steps * len(sessions))
+    first = sessions[0]
+    bundle = build_policy(pooled_run, first.split.meta, first.split.entry, cameras)
+    set_trainable(bundle, start)
+    trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled_run)
+    trainer.fit(pooled_run.total_steps, mu=0.0, global_step=0)
+    return snapshot(bundle), dict(trainer.samples_from)
+
+
+def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
+    """One client alone, for the steps it takes in the federation."""
+    set_trainable(session.bundle, start)
+    session.trainer.fit(run.total_steps, mu=0.0, global_step=0)
+    return snapshot(session.bundle)
+
+
+def evaluation_sets(sessions: list[ClientSession], registry: Registry, run: RunConfig) -> dict:
+    """Column name -> (bundle, split, loader): each client's held-out episodes with that client's own
+    processors, and the server's evaluation set with the server's, as the federation evaluates."""
+    columns = {f"client {s.index}": (s.bundle, s.split, s.eval_batches) for s in sessions}
+    entry = registry.get(run.server_eval_dataset)
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    split = open_evaluation(entry, meta, bundle.policy.config, run)
+    columns[SERVER] = (bundle, split, eval_loader(split.evaluation, run))
+    return columns
+
+
+def evaluate_all(models: dict[str, Weights], columns: dict, run: RunConfig) -> dict[str, dict[str, dict]]:
+    """Every model on every evaluation set: {model: {column: {action-mse, policy-loss}}}."""
+    matrix: dict[str, dict[str, dict]] = {}
+    for label, weights in models.items():
+        for column, (bundle, split, loader) in columns.items():
+            set_trainable(bundle, weights)
+            m = evaluate(bundle, split, loader, run.eval_batches, run.seed, run.max_skip_fraction)
+            matrix.setdefault(label, {})[column] = {"action-mse": m["action-mse"], "policy-loss": m["policy-loss"]}
+    return matrix
+
+
+def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
+    """The study's two targets: federation vs centralised on the server set, and federation vs each
+    local-only model on the other clients' held-out episodes."""
+    mse = {label: {c: v["action-mse"] for c, v in row.items()} for label, row in matrix.items()}
+    central = mse["centralised"][SERVER]
+    out: dict = {"vs-centralised": {label: mse[label][SERVER] / central for label in ("FedProx", "FedAvg")}}
+    others = {}
+    for c in range(clients):
+        rest = [f"client {j}" for j in range(clients) if j != c]
+        row = {label: statistics.mean(mse[label][col] for col in rest) for label in ("FedProx", "FedAvg")}
+        row["local-only"] = statistics.mean(mse[f"local {c}"][col] for col in rest)
+        others[f"local {c}"] = row
+    out["other-clients"] = others
+    out["federation-beats-every-local"] = {
+        label: all(row[label] < row["local-only"] for row in others.values()) for label in ("FedProx", "FedAvg")
+    }
+    return out
+
+
+def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
+    """Train every model of one setting and evaluate each on every evaluation set (None: a federation failed)."""
+    registry_path = SETTINGS[setting]
+    registry = load_registry(registry_path)
+    run = study_run(args, registry_path)
+    generate(registry)
+    started = time.perf_counter()
+    cameras = registry.model_cameras()
+    sessions = [build_client(run, entry, cameras, i) for i, entry in enumerate(registry.clients[: args.clients])]
+    columns = evaluation_sets(sessions, registry, run)
+    start = snapshot(sessions[0].bundle)
+    federations = federated_models(args, setting, registry_path, columns[SERVER][0])
+    if federations is None:
+        return None
+    models: dict[str, Weights] = {"start": start, **{label: w for label, (w, _) in federations.items()}}
+    models["centralised"], seen = centralised(sessions, run, start, cameras)
+    for session in sessions:
+        models[f"local {session.index}"] = local_only(session, run, start)
+    matrix = evaluate_all(models, columns, run)
+    return {
+        "registry": registry_path or "pyproject.toml",
+        "clients": {f"client {s.index}": s.split.entry.name for s in sessions},
+        "server": run.server_eval_dataset,
+        "matrix": matrix,
+        "summary": summary(matrix, len(sessions)),
+        "centralised-samples-from": seen,
+        "federations": {
+            label: {
+                "run-dir": h["run-dir"],
+                "wall-s": h["wall-s"],
+                "server-evaluate": [r["server-evaluate"] for r in h["rounds"] if r.get("server-evaluate")],
+            }
+            for label, (_, h) in federations.items()
+        },
+        "wall-s": time.perf_counter() - started,
+    }
+
+
+def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
+    matrix = result["matrix"]
+    columns = list(next(iter(matrix.values())))
+    print(
+        f"\nsetting {setting}: {len(result['clients'])} clients ({', '.join(result['clients'].values())}), "
+        f"server set {result['server']}; {args.rounds} rounds x {args.local_steps} steps, batch {args.batch_size}, "
+        f"lr {args.lr} (federation {args.federation_lr})"
+    )
+    for metric in ("action-mse", "policy-loss"):
+        print(f"{metric:<12}" + "".join(f"{c:>11}" for c in columns))
+        for label, row in matrix.items():
+            print(f"{label:<12}" + "".join(f"{row[c][metric]:>11.4g}" for c in columns))
+    s = result["summary"]
+    for label, ratio in s["vs-centralised"].items():
+        print(f"{label} / centralised, server action MSE: {ratio:.3f} (target <= 1.10)")
+    print("other clients' held-out episodes, mean action MSE (local-only vs FedProx, FedAvg):")
+    for local, row in s["other-clients"].items():
+        print(f"  {local:<8} {row['local-only']:>9.2f} {row['FedProx']:>9.2f} {row['FedAvg']:>9.2f}")
+    for label, beats in s["federation-beats-every-local"].items():
+        print(f"{label} better than every local-only model on the other clients' held-out episodes: {beats}")
+    seen = ", ".join(f"{n} {k}" for k, n in result["centralised-samples-from"].items())
+    print(f"centralised trained on samples from: {seen}; {result['wall-s']:.0f} s")
+
+
+def chart(results: dict[str, dict], path: Path) -> None:
+    """One table per setting, models x evaluation sets: each cell's action MSE, coloured by how many
+    times the best model's on that set it is (green: the best; red: ten times the best or more)."""
+    fig = Figure(figsize=(5.5 * len(results), 4.8), layout="constrained")
+    for ax, (setting, result) in zip(np.atleast_1d(fig.subplots(1, len(results))), results.items(), strict=True):
+        matrix = result["matrix"]
+        rows, columns = list(matrix), list(next(iter(matrix.values())))
+        values = np.array([[matrix[r][c]["action-mse"] for c in columns] for r in rows])
+        ratio = values / values.min(axis=0)
+        image = ax.imshow(ratio, cmap="RdYlGn_r", norm=LogNorm(vmin=1.0, vmax=10.0), aspect="auto")
+        for i, j in np.ndindex(values.shape):
+            ax.text(j, i, f"{values[i, j]:.3g}", ha="center", va="center", fontsize=8)
+        ax.set_xticks(range(len(columns)), [c.replace("client ", "client\n") for c in columns])
+        ax.set_yticks(range(len(rows)), rows)
+        ax.set_title(f"{setting}: action MSE on each held-out set", fontsize=10)
+        bar = fig.colorbar(image, ax=ax, shrink=0.8, label="x the best model's MSE on that set")
+        bar.set_ticks([1, 2, 3, 5, 10], labels=["1", "2", "3", "5", "10"])
+    fig.savefig(path, dpi=110)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = OneSentenceParser(prog="python -m zk0.bench study", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
+    parser.add_argument("--rounds", type=positive(int), default=8)
+    parser.add_argument("--local-steps", type=positive(int), default=20)
+    parser.add_argument("--batch-size", type=positive(int), default=8)
+    parser.add_argument("--lr", type=positive(float), default=8e-3, help="every model's (the best tried for each)")
+    parser.add_argument(
+        "--federation-lr",
+        type=positive(float),
+        help="the federation's learning rate (default: --lr, as the baselines')",
+    )
+    parser.add_argument("--proximal-mu", type=positive(float), default=RunConfig.proximal_mu, help="FedProx's mu")
+    parser.add_argument("--clients", type=positive(int), default=4)
+    parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
+    parser.add_argument("--output-dir", default="outputs/bench-study")
+    parser.add_argument("--json", help="the figures (default: <output-dir>/study.json)")
+    parser.add_argument("--chart", help="the PNG chart (default: <output-dir>/study.png)")
+    args = parser.parse_args(argv)
+    args.federation_lr = args.federation_lr or args.lr
+    out = Path(args.output_dir)
+    out.mkdir(parents=True, exist_ok=True)
+
+    results = {}
+    for setting in args.settings:
+        result = run_setting(args, setting)
+        if result is None:
+            return 1
+        results[setting] = result
+        print_setting(setting, results[setting], args)
+    json_path, chart_path = Path(args.json or out / "study.json"), Path(args.chart or out / "study.png")
+    json_path.write_text(json.dumps({"settings": vars(args), "results": results}, indent=2))
+    chart(results, chart_path)
+    print(f"\nfigures: {json_path}; chart: {chart_path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
