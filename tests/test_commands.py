@@ -18,7 +18,7 @@ def exit_code(call, argv: list[str]) -> int:
 
 
 COMMANDS = ["assets", "check", "certs", "superlink", "supernode"]
-BENCHES = "learning, exchange, step, round, memory, deployment, gpu"
+BENCHES = "learning, study, exchange, step, round, memory, deployment, gpu"
 
 
 def test_the_benchmark_list_is_zk0s():
@@ -69,6 +69,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
             ["exchange", "--peft", "lora", "--lora-rank", "0"],
             "python -m zk0.bench exchange: argument --lora-rank: got '0'; expected int > 0; "
             "see python -m zk0.bench exchange --help.",
+        ),
+        (
+            bench,
+            ["study", "--rounds", "0"],
+            "python -m zk0.bench study: argument --rounds: got '0'; expected int > 0; "
+            "see python -m zk0.bench study --help.",
         ),
         (
             bench,
