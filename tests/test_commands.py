@@ -78,6 +78,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         ),
         (
             bench,
+            ["study", "--clients", "5"],
+            "python -m zk0.bench study: --clients got 5; the mild setting has 4 client datasets; "
+            "see python -m zk0.bench study --help.",
+        ),
+        (
+            bench,
             ["learning", "--peft", "lora", "--lora-lr", "fast"],
             "python -m zk0.bench learning: argument --lora-lr: got 'fast'; expected float > 0; "
             "see python -m zk0.bench learning --help.",

@@ -50,6 +50,7 @@ from zk0.training import PooledTrainer, evaluate
 
 SETTINGS = {"mild": "", "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml")}
 SERVER = "server"
+FEDERATIONS = ("FedProx", "FedAvg")
 Weights = dict[str, torch.Tensor]
 
 
@@ -80,7 +81,7 @@ def federated_models(
     """FedProx and FedAvg through ``flwr run``: each final global model and the run's history
     (None, after Flower's log and one sentence, if a federation failed)."""
     models = {}
-    for label, mu in (("FedProx", args.proximal_mu), ("FedAvg", 0.0)):
+    for label, mu in zip(FEDERATIONS, (args.proximal_mu, 0.0), strict=True):
         keys = {"proximal-mu": mu, "registry": registry, "eval-frequency": args.rounds, "lr": args.federation_lr}
         history = federate(args, args.rounds, f"{setting}-{label.lower()}", **keys)
         if history is None:
@@ -139,16 +140,16 @@ def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
     local-only model on the other clients' held-out episodes."""
     mse = {label: {c: v["action-mse"] for c, v in row.items()} for label, row in matrix.items()}
     central = mse["centralised"][SERVER]
-    out: dict = {"vs-centralised": {label: mse[label][SERVER] / central for label in ("FedProx", "FedAvg")}}
+    out: dict = {"vs-centralised": {label: mse[label][SERVER] / central for label in FEDERATIONS}}
     others = {}
     for c in range(clients):
         rest = [f"client {j}" for j in range(clients) if j != c]
-        row = {label: statistics.mean(mse[label][col] for col in rest) for label in ("FedProx", "FedAvg")}
+        row = {label: statistics.mean(mse[label][col] for col in rest) for label in FEDERATIONS}
         row["local-only"] = statistics.mean(mse[f"local {c}"][col] for col in rest)
         others[f"local {c}"] = row
     out["other-clients"] = others
     out["federation-beats-every-local"] = {
-        label: all(row[label] < row["local-only"] for row in others.values()) for label in ("FedProx", "FedAvg")
+        label: all(row[label] < row["local-only"] for row in others.values()) for label in FEDERATIONS
     }
     return out
 
@@ -255,6 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--chart", help="the PNG chart (default: <output-dir>/study.png)")
     args = parser.parse_args(argv)
     args.federation_lr = args.federation_lr or args.lr
+    for setting in args.settings:
+        available = len(load_registry(SETTINGS[setting]).clients)
+        if args.clients > available:
+            parser.error(f"--clients got {args.clients}; the {setting} setting has {available} client datasets")
     out = Path(args.output_dir)
     out.mkdir(parents=True, exist_ok=True)
 
