@@ -115,7 +115,7 @@ cd "$ZK0_ROOT"
 run_config="$(zk0 check --print "${preset[@]}" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}")" || exit 2
 flwr_command=(flwr run . local --stream --federation-config "configs/federation/$mode.toml" --run-config "$run_config")
 [ "$print_only" = 0 ] || launch "${flwr_command[@]}"
-zk0 assets >/dev/null
+zk0 assets --run-config "$run_config" >/dev/null
 if [ "$setup_only" = 1 ]; then
     zk0_log "Set-up complete; run ./train.sh to start the quick federation."
     exit 0

@@ -3,9 +3,11 @@
 Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
 
     server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
+    server/success_rate.png, lifted_rate.png, videos/round_<N>.mp4   with closed-loop evaluation (zk0.sim)
     clients/client_<i>/client.log (written by the client), round_<N>.json
     models/checkpoint_round_<N>/   a lerobot pretrained-model directory (LoRA: merged, adapter/ beside)
-    models/best/                   the same, of the round with the lowest server action MSE (round 0 included)
+    models/best/                   the same, of the best round (round 0 included): the highest success
+                                   rate in the simulator when measured, else the lowest server action MSE
 
 JSON and charts are rewritten after every round, so an interrupted run keeps them;
 checkpoints are written under a temporary name and renamed; nothing is pickled.
@@ -30,6 +32,7 @@ from zk0.errors import Zk0Error
 from zk0.policy import PolicyBundle
 
 CHARTS = {"policy-loss": "policy_loss.png", "action-mse": "action_mse.png"}
+SIM_CHARTS = {"success-rate": "success_rate.png", "lifted-rate": "lifted_rate.png"}  # with closed-loop evaluation
 
 
 def new_run_dir(output_dir: str | Path) -> Path:
@@ -97,6 +100,9 @@ class History:
         write_json(self.run_dir / "server" / "metrics_history.json", history)
         for metric, filename in CHARTS.items():
             self.chart(metric, self.run_dir / "server" / filename)
+        for metric, filename in SIM_CHARTS.items():
+            if any(metric in record.get("server-evaluate", {}) for record in self.rounds.values()):
+                self.chart(metric, self.run_dir / "server" / filename)
 
     def participants(self) -> dict[str, str]:
         """Short index -> dataset name of every client that has replied so far."""

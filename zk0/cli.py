@@ -15,19 +15,23 @@ from zk0 import deploy
 from zk0.assets import TINY_BACKBONE, AssetError, default_cache_root, ensure_backbone, ensure_dataset
 from zk0.assets.datasets import SPECS
 from zk0.certs import make_federation_certs
-from zk0.config import from_run_config
+from zk0.config import RunConfig, from_run_config
 from zk0.deploy import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
 from zk0.errors import OneSentenceParser, Zk0Error
 from zk0.registry import PROJECT_ROOT, load_registry
+from zk0.sim.tasks import SIM_SPECS
 
 
 def _assets(args: argparse.Namespace) -> int:
     """(Re)generate the offline assets and print where each one is."""
     root = Path(args.cache_dir).expanduser() if args.cache_dir else default_cache_root()
     names = args.only or [TINY_BACKBONE, *(name for name, spec in SPECS.items() if not spec.benchmark_only)]
+    if args.run_config:  # and every dataset zk0 generates that this run's registry names
+        run, _ = _merged_run(None, args.run_config)
+        names += [e.name for e in load_registry(run.registry).entries if e.synthetic and e.name not in names]
     for name in names:
-        if name != TINY_BACKBONE and name not in SPECS:
-            raise AssetError(f"Unknown asset {name!r}; expected one of {[TINY_BACKBONE, *SPECS]}.")
+        if name != TINY_BACKBONE and name not in SPECS and name not in SIM_SPECS:
+            raise AssetError(f"Unknown asset {name!r}; expected one of {[TINY_BACKBONE, *SPECS, *SIM_SPECS]}.")
     for name in names:
         if name == TINY_BACKBONE:
             path = ensure_backbone(root)
@@ -52,15 +56,20 @@ def _toml_value(value: object) -> str:
     return f"'{value}'" if isinstance(value, str) else repr(value)
 
 
+def _merged_run(preset: str | None, run_config: list[str]) -> tuple[RunConfig, dict]:
+    """The run config the apps will see (pyproject defaults, the preset, the overrides), and the overrides."""
+    table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
+    overrides = tomllib.loads(preset_path(preset).read_text()) if preset else {}
+    try:
+        overrides.update(parse_config_args(run_config))
+    except Exception as err:  # flwr raises click/TOML errors with a readable message
+        raise Zk0Error(f"Run config {run_config} cannot be parsed: {getattr(err, 'message', err)}") from None
+    return from_run_config({**flatten_dict(table), **overrides}), overrides
+
+
 def _check(args: argparse.Namespace) -> int:
     """Validate a preset and run-config overrides the way the apps will, before anything starts."""
-    table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
-    overrides = tomllib.loads(preset_path(args.preset).read_text()) if args.preset else {}
-    try:
-        overrides.update(parse_config_args(args.run_config))
-    except Exception as err:  # flwr raises click/TOML errors with a readable message
-        raise Zk0Error(f"Run config {args.run_config} cannot be parsed: {getattr(err, 'message', err)}") from None
-    run = from_run_config({**flatten_dict(table), **overrides})
+    run, overrides = _merged_run(args.preset, args.run_config)
     registry = load_registry(run.registry)
     registry.get(run.server_eval_dataset)
     if args.print:  # one flat override string for `flwr run --run-config`; datasets are not opened
@@ -156,7 +165,10 @@ def build_parser() -> argparse.ArgumentParser:
     assets.add_argument("--seed", type=int, default=0, help="generator seed (default 0, what runs use)")
     assets.add_argument("--episodes", type=int, help="episodes per dataset (default: each dataset's own)")
     assets.add_argument(
-        "--only", nargs="+", metavar="NAME", help=f"only these assets: {TINY_BACKBONE} {' '.join(SPECS)}"
+        "--only", nargs="+", metavar="NAME", help=f"only these assets: {TINY_BACKBONE} {' '.join([*SPECS, *SIM_SPECS])}"
+    )
+    assets.add_argument(
+        "--run-config", action="append", default=[], help="also every generated dataset this run's registry names"
     )
     assets.set_defaults(func=_assets)
     check = commands.add_parser(

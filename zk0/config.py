@@ -16,6 +16,7 @@ from typing import Any
 from loguru import logger
 
 from zk0.errors import Zk0Error
+from zk0.sim.tasks import SIM_SPECS
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
@@ -71,6 +72,7 @@ class RunConfig:
     lora_targets: str = ""  # a regex of module names; "" = SmolVLA's own default targets
     lora_full_modules: str = ""  # comma-separated modules trained in full next to the adapters (PEFT modules_to_save)
     lora_average: str = "b"  # b: A frozen at its seeded start, B trained and averaged; ab: both trained and averaged
+    sim_eval_episodes: int = 0  # closed-loop episodes in the simulator per evaluated round (zk0.sim); 0 = off
 
     @property
     def total_steps(self) -> int:
@@ -115,6 +117,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "phase_timeout": (0, None, True),
     "lora_rank": (1, None, False),
     "lora_alpha": (0, None, True),
+    "sim_eval_episodes": (0, None, False),
 }
 
 
@@ -174,6 +177,13 @@ def _check_choices(cfg: RunConfig) -> None:
     if not cfg.model:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")
     _check_peft(cfg)
+    if cfg.sim_eval_episodes and cfg.server_eval_dataset not in SIM_SPECS:
+        raise ConfigError(
+            f"Run-config key 'sim-eval-episodes' = {cfg.sim_eval_episodes} rolls the model out in the simulator, "
+            f"and server-eval-dataset={cfg.server_eval_dataset!r} was not recorded there; expected one of "
+            f"{sorted(n for n, s in SIM_SPECS.items() if s.role == 'server')} (registry='configs/sim-registry.toml', "
+            "or ./train.sh --preset sim) or sim-eval-episodes=0."
+        )
 
 
 def _check_peft(cfg: RunConfig) -> None:

@@ -16,6 +16,7 @@ import draccus
 
 from zk0.assets import generated_dataset
 from zk0.assets.datasets import SPECS
+from zk0.sim.tasks import SIM_SPECS
 from zk0.errors import Zk0Error
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -120,8 +121,10 @@ def _decode(name: str, raw: dict) -> DatasetEntry:
         raise RegistryError(f"Registry entry {name!r} is invalid: {err}".rstrip(".") + ".") from None
     if entry.role not in ROLES:
         raise RegistryError(f"Registry entry {name!r} has role {entry.role!r}; expected one of {list(ROLES)}.")
-    if entry.synthetic and name not in SPECS:
-        raise RegistryError(f"Registry entry {name!r} is marked synthetic but zk0 generates only {sorted(SPECS)}.")
+    if entry.synthetic and name not in SPECS and name not in SIM_SPECS:
+        raise RegistryError(
+            f"Registry entry {name!r} is marked synthetic but zk0 generates only {sorted([*SPECS, *SIM_SPECS])}."
+        )
     if not entry.cameras:
         raise RegistryError(
             f'Registry entry {name!r} maps no cameras; add cameras = {{ <dataset camera> = "camera1" }}.'

@@ -106,15 +106,19 @@ class RoundArtifacts:
             publish(self.run, self.history.run_dir, path, server_round, self.entries(), metrics, self.push, tag=True)
 
     def keep_if_best(self, server_round: int, arrays: ArrayRecord, evaluation: dict) -> None:
-        """Remember this round's model as the best when its server action MSE is the lowest so far
-        (written to ``models/best`` at the round's end; round 0's only once a round trained, so a
-        run that cannot train writes no model)."""
+        """Remember this round's model as the best when it beats every earlier one (written to
+        ``models/best`` at the round's end; round 0's only once a round trained, so a run that
+        cannot train writes no model). With closed-loop evaluation the best is the highest success
+        rate, ties going to the lower server action MSE; without, the lowest action MSE."""
         mse = float(evaluation["action-mse"])
         if server_round == 0:
             self.start_mse = mse
-        if self.best is not None and mse >= self.best["action-mse"]:
+        candidate = {"round": server_round, "action-mse": mse}
+        if "success-rate" in evaluation:
+            candidate["success-rate"] = float(evaluation["success-rate"])
+        if self.best is not None and rank(candidate) <= rank(self.best):
             return
-        self.best = {"round": server_round, "action-mse": mse}
+        self.best = candidate
         self.unsaved = (arrays, evaluation)
 
     def save(self, server_round: int, arrays: ArrayRecord, evaluation: dict | None, name: str | None = None):
@@ -143,12 +147,13 @@ class RoundArtifacts:
         if self.best is None:
             return "the server evaluated no round, so there is no models/best"
         start = "" if self.start_mse is None else f"; round 0: {self.start_mse:.4g}"
+        success = f"success rate {self.best['success-rate']:.0%}, " if "success-rate" in self.best else ""
         if self.best["round"] == 0:
             return (
-                f"no round beat the starting model (server action MSE {self.best['action-mse']:.4g}), "
+                f"no round beat the starting model ({success}server action MSE {self.best['action-mse']:.4g}), "
                 "so models/best is round 0, the model this run started from"
             )
-        return f"models/best is round {self.best['round']} (server action MSE {self.best['action-mse']:.4g}{start})"
+        return f"models/best is round {self.best['round']} ({success}server action MSE {self.best['action-mse']:.4g}{start})"
 
     def checkpoint_bundle(self) -> PolicyBundle:
         """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
@@ -162,12 +167,19 @@ class RoundArtifacts:
         trained = sum("train" in c and "error" not in c["train"] for c in record["clients"].values())
         loss = record.get("aggregate-train", {}).get("train-loss")
         mse = record.get("server-evaluate", {}).get("action-mse")
+        success = record.get("server-evaluate", {}).get("success-rate")
         per_round = (time.perf_counter() - self.started) / (server_round - self.first_round + 1)
         left = round(per_round * (self.run.num_server_rounds - server_round))
         return (
             f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
             f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
-            f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
+            + ("" if success is None else f"success {success:.0%} in the simulator, ")
+            + f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
             + (f", best round {self.best['round']}" if self.best else "")
         )
+
+
+def rank(best: dict) -> tuple[float, float]:
+    """What makes a round's model better: a higher success rate (when measured), then a lower action MSE."""
+    return (best.get("success-rate", 0.0), -best["action-mse"])

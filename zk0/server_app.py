@@ -40,11 +40,19 @@ app = ServerApp()
 
 class ServerEvaluation:
     """Flower's ``evaluate_fn``: the global model's policy loss and action MSE on the server's own
-    held-out dataset, in the rounds the run evaluates (round 0 is the starting model)."""
+    held-out dataset, in the rounds the run evaluates (round 0 is the starting model); with
+    ``sim-eval-episodes``, also its success rate in closed loop in the simulator, and a video."""
 
-    def __init__(self, run: RunConfig, bundle: PolicyBundle, split: DatasetSplit):
+    def __init__(self, run: RunConfig, bundle: PolicyBundle, split: DatasetSplit, run_dir: Path):
         self.run, self.bundle, self.split = run, bundle, split
         self.loader = eval_loader(split.evaluation, run)
+        self.videos = run_dir / "server" / "videos"
+        self.closed_loop = None
+        if run.sim_eval_episodes:
+            from zk0.sim.closed_loop import ClosedLoop  # MuJoCo and a renderer: only when asked for
+
+            height, width, _ = split.meta.features["observation.images.front"]["shape"]
+            self.closed_loop = ClosedLoop(split.entry.name, run.sim_eval_episodes, run.seed, height, width)
 
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
         if server_round and not self.run.evaluates_in(server_round):
@@ -52,8 +60,15 @@ class ServerEvaluation:
         set_trainable(self.bundle, arrays)
         run = self.run
         metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
+        if self.closed_loop:
+            self.videos.mkdir(parents=True, exist_ok=True)
+            metrics |= self.closed_loop(self.bundle, self.videos / f"round_{server_round}.mp4")
         logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
         return MetricRecord(metrics)
+
+    def close(self) -> None:
+        if self.closed_loop:
+            self.closed_loop.close()
 
 
 def record_run_config(run: RunConfig, run_dir: Path, resumed: ResumePoint | None) -> None:
@@ -151,6 +166,7 @@ def main(grid: Grid, context: Context) -> None:
         "run-name": run_dir.name,
         **{SHAPE + key: list(ft.shape) for key, ft in config_features(bundle.policy.config).items() if key in SIZED},
     }
+    evaluation = ServerEvaluation(run, bundle, split, run_dir)
     try:
         strategy.start(
             grid=PromptGrid(grid),
@@ -158,12 +174,13 @@ def main(grid: Grid, context: Context) -> None:
             num_rounds=run.num_server_rounds - done,
             train_config=ConfigRecord(dict(shared)),
             evaluate_config=ConfigRecord(dict(shared)),
-            evaluate_fn=ServerEvaluation(run, bundle, split),
+            evaluate_fn=evaluation,
             timeout=run.phase_timeout,
         )
     except Zk0Error as err:
         logger.error("zk0: {}", err)
         raise
     finally:
+        evaluation.close()
         tracker.finish()
     logger.info("Done: outputs in {}; {}.", run_dir, artifacts.summary())

@@ -20,6 +20,7 @@ from filelock import FileLock
 
 from zk0.assets.datasets import SPECS
 from zk0.errors import Zk0Error
+from zk0.sim.tasks import SIM_SPECS
 
 GENERATOR_VERSION = 1
 MANIFEST = "zk0_manifest.json"
@@ -95,17 +96,29 @@ def _build_backbone(out: Path, kind: str) -> None:
     build_backbone(out, {TINY_BACKBONE: TINY, FULL_SIZE_BACKBONE: SMOLVLM2_500M}[kind])
 
 
+def generated_spec(name: str):
+    """The spec of a dataset zk0 generates: synthetic frames (``SPECS``) or simulator
+    demonstrations (``zk0.sim.tasks.SIM_SPECS``)."""
+    spec = SPECS.get(name) or SIM_SPECS.get(name)
+    if spec is None:
+        raise AssetError(f"Unknown generated dataset {name!r}; expected one of {sorted([*SPECS, *SIM_SPECS])}.")
+    return spec
+
+
 def _write_dataset(out: Path, name: str, seed: int, episodes: int | None) -> None:
+    if name in SIM_SPECS:  # MuJoCo loads only to record demonstrations
+        from zk0.sim.record import record_demonstrations
+
+        record_demonstrations(SIM_SPECS[name], out, seed, episodes)
+        return
     from zk0.assets.datasets import write_synthetic_dataset
 
     write_synthetic_dataset(SPECS[name], out, seed, episodes)
 
 
 def synthetic_dataset_root(name: str, root: Path | None = None) -> Path:
-    """Where the synthetic dataset ``name`` lives (a LeRobotDataset root)."""
-    if name not in SPECS:
-        raise AssetError(f"Unknown synthetic dataset {name!r}; expected one of {sorted(SPECS)}.")
-    return (root or default_cache_root()) / "datasets" / SPECS[name].repo_id
+    """Where the generated dataset ``name`` lives (a LeRobotDataset root)."""
+    return (root or default_cache_root()) / "datasets" / generated_spec(name).repo_id
 
 
 def generated_dataset(name: str, root: Path | None = None) -> Path | None:
@@ -128,7 +141,7 @@ def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes:
     if episodes is not None and episodes < 1:
         raise AssetError(f"Episode count {episodes} for {name!r} is invalid; expected a positive integer.")
     _writable_root(root or default_cache_root())
-    spec = SPECS[name]
+    spec = generated_spec(name)
     manifest = {"asset": name, "version": GENERATOR_VERSION, "seed": seed, "episodes": episodes or spec.episodes}
     _quiet_video_encoders()
     return _ensure(target, manifest, lambda tmp: _write_dataset(tmp, name, seed, episodes))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 from zk0.assets import ensure_all
-from zk0.bench import deployment, exchange, gpu, learning, memory, round, step, study
+from zk0.bench import deployment, exchange, gpu, learning, memory, round, sim, step, study
 
 BENCHMARKS = {
     "learning": learning.main,
@@ -16,6 +16,7 @@ BENCHMARKS = {
     "memory": memory.main,
     "deployment": deployment.main,
     "gpu": gpu.main,
+    "sim": sim.main,
 }
 
 

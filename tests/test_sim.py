@@ -1,0 +1,172 @@
+"""The simulated SO-101: units, the expert, the env contract lerobot relies on, demonstrations that
+train, and closed-loop evaluation through lerobot's own ``eval_policy`` (real MuJoCo, rendering
+headless with EGL)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from zk0.assets import ensure_dataset
+from zk0.assets.datasets import JOINT_NAMES
+from zk0.config import ConfigError, from_run_config
+from zk0.sim.env import HOLD_STEPS, JOINTS, PickCubeEnv, to_lerobot, to_mujoco
+from zk0.sim.expert import PickExpert
+from zk0.sim.record import demonstrate, episode_seed
+from zk0.sim.tasks import SIM_SPECS
+
+REGISTRY = "configs/sim-registry.toml"
+# The registry maps the env's cameras onto the model's inputs; lerobot-eval takes the same map.
+CAMERA_MAP = {"observation.images.front": "observation.images.camera1", "observation.images.wrist": "observation.images.camera2"}
+
+
+@pytest.fixture(scope="module")
+def env():
+    env = PickCubeEnv(SIM_SPECS["sim-so101-eval"].task, 64, 64)
+    yield env
+    env.close()
+
+
+def test_state_and_action_are_lerobots_so101_features_in_its_units(env):
+    assert tuple(f"{joint}.pos" for joint in JOINTS) == JOINT_NAMES  # the synthetic and real SO-101 names
+    low, high = env.gripper_range
+    middle = np.zeros(6)
+    middle[5] = (low + high) / 2
+    assert to_lerobot(middle, env.gripper_range) == pytest.approx([0, 0, 0, 0, 0, 50], abs=1e-4)
+    closed = np.array([np.pi / 2, -np.pi / 4, 0, 0, 0, low])
+    assert to_lerobot(closed, env.gripper_range) == pytest.approx([90, -45, 0, 0, 0, 0], abs=1e-4)
+    assert to_mujoco(to_lerobot(closed, env.gripper_range), env.gripper_range) == pytest.approx(closed, abs=1e-6)
+    assert env.action_space.low[5] == pytest.approx(0) and env.action_space.high[5] == pytest.approx(100)
+    observation, info = env.reset(seed=3)
+    assert observation["agent_pos"].shape == (6,) and observation["agent_pos"].dtype == np.float32
+    assert {k: v.shape for k, v in observation["pixels"].items()} == {"front": (64, 64, 3), "wrist": (64, 64, 3)}
+    assert env.task_description in {f"Pick up the {c} cube" for c in SIM_SPECS["sim-so101-eval"].task.colours}
+    # the servo holds the commanded pose: after a second at a target, the state reads it back (degrees)
+    target = observation["agent_pos"] + np.array([10, -5, 5, 0, 20, 0], dtype=np.float32)
+    for _ in range(30):
+        observation, *_ = env.step(target)
+    assert observation["agent_pos"][:5] == pytest.approx(target[:5], abs=2.0)
+
+
+def test_the_expert_lifts_the_named_cube_on_seeded_episodes(env):
+    """The expert is ~95% successful (python -m zk0.bench sim): at least 5 of 6 seeded episodes."""
+    expert = PickExpert(env)
+    outcomes = []
+    for index in range(6):
+        frames, success = demonstrate(env, expert, episode_seed(7, "test", index))
+        outcomes.append(dict(env.outcome))
+        if success:
+            assert env.outcome == {"reached": True, "grasped": True, "lifted": True}
+            assert len(frames) < env.task.max_steps
+    assert sum(o["lifted"] for o in outcomes) >= 5, outcomes
+
+
+def test_a_policy_that_does_nothing_fails_and_every_step_says_so(env):
+    observation, info = env.reset(seed=11)
+    infos = [info]
+    for _ in range(60):
+        observation, reward, terminated, truncated, info = env.step(observation["agent_pos"])
+        infos.append(info)
+    assert all(isinstance(i["is_success"], bool) for i in infos)
+    assert not any(i["is_success"] or i["lifted"] for i in infos) and reward == 0.0
+
+
+def test_success_needs_the_cube_held_up_for_a_while(env):
+    """The expert's episode ends with success only after HOLD_STEPS lifted steps in a row."""
+    expert = PickExpert(env)
+    env.reset(seed=5)
+    expert.reset()
+    lifted_since = None
+    for step in range(env.task.max_steps):
+        _, _, terminated, _, info = env.step(expert.act())
+        if info["lifted"] and lifted_since is None:
+            lifted_since = step
+        if terminated:
+            break
+    assert terminated and info["is_success"] and step - lifted_since >= HOLD_STEPS - 1
+
+
+def test_recorded_demonstrations_pass_preflight_and_train(tmp_path):
+    from zk0.client import build_client
+    from zk0.registry import load_registry
+
+    root = ensure_dataset("sim-so101-left")
+    meta = json.loads((root / "meta" / "info.json").read_text())
+    assert meta["robot_type"] == "so101_follower" and meta["fps"] == 30
+    assert meta["features"]["action"]["names"] == list(JOINT_NAMES)
+    assert meta["features"]["observation.images.wrist"]["dtype"] == "video"
+    registry = load_registry(REGISTRY)
+    run = from_run_config({"registry": REGISTRY, "server-eval-dataset": "sim-so101-eval", "batch-size": 2})
+    client = build_client(run, registry.get("sim-so101-left"), registry.model_cameras())  # runs the pre-flight check
+    metrics = client.trainer.fit(steps=2, mu=0.0, global_step=0)
+    assert metrics["num-examples"] == 4 and np.isfinite(metrics["train-loss"])
+
+
+def test_sim_evaluation_needs_a_simulated_server_set():
+    with pytest.raises(ConfigError, match="'sim-eval-episodes' = 3.*server-eval-dataset='synth-so100-eval'"):
+        from_run_config({"sim-eval-episodes": 3})
+    run = from_run_config({"sim-eval-episodes": 3, "server-eval-dataset": "sim-so101-eval", "registry": REGISTRY})
+    assert run.sim_eval_episodes == 3
+
+
+def test_a_machine_that_cannot_render_says_so_in_one_sentence():
+    code = (
+        "from zk0.sim import RenderError\n"
+        "try:\n    from zk0.sim.env import PickCubeEnv\n    PickCubeEnv().reset(seed=0)\n"
+        "except RenderError as err:\n    print(err)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ, "MUJOCO_GL": "osmesa"},
+        timeout=120,
+    )
+    lines = done.stdout.strip().splitlines()
+    if not lines:  # this machine has OSMesa: nothing to refuse
+        pytest.skip("OSMesa is installed here, so MUJOCO_GL=osmesa renders")
+    assert len(lines) == 1 and "MUJOCO_GL='osmesa'" in lines[0] and "libosmesa6" in lines[0], done.stdout
+
+
+@pytest.mark.e2e
+def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_model(tmp_path):
+    """Two sim clients x 1 round through `flwr run`: success rates in the round JSON and history, a
+    video, a success chart, models/best; then lerobot's `lerobot-eval` runs models/best on the env."""
+    from zk0.simulation import cpu_federation, flwr_run, local_federation
+
+    for name in SIM_SPECS:  # the server checks every client dataset of the registry before round 1
+        ensure_dataset(name)
+    out = tmp_path / "outputs"
+    with local_federation(tmp_path / "flwr-home") as flower_env:
+        log = flwr_run(
+            flower_env,
+            f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 "
+            f"num-server-rounds=1 local-steps=2 batch-size=2 eval-batches=1 output-dir='{out}'",
+            cpu_federation(num_supernodes=2, actors=1),
+        )
+    runs = list(out.iterdir()) if out.exists() else []
+    assert len(runs) == 1, log[-3000:]
+    server = runs[0] / "server"
+    history = json.loads((server / "metrics_history.json").read_text())
+    for record in history["rounds"]:
+        evaluation = record["server-evaluate"]
+        assert {"success-rate", "reached-rate", "grasped-rate", "lifted-rate", "episode-length"} <= set(evaluation)
+        assert 0.0 <= evaluation["success-rate"] <= 1.0 and 1 <= evaluation["episode-length"] <= 300
+        assert (server / "videos" / f"round_{record['round']}.mp4").stat().st_size > 0
+    assert (server / "success_rate.png").stat().st_size > 0
+    best = runs[0] / "models" / "best"
+    assert "success-rate" in json.loads((best / "zk0_round.json").read_text())["server-evaluate"]
+    assert "success rate" in log and "in the simulator" in log
+
+    done = subprocess.run(
+        [sys.executable, "-m", "zk0.sim.lerobot_eval", f"--policy.path={best}", "--env.type=zk0_so101",
+         "--env.episode_length=20", "--eval.n_episodes=1", "--eval.batch_size=1", "--policy.device=cpu",
+         f"--rename_map={json.dumps(CAMERA_MAP)}",
+         f"--output_dir={tmp_path / 'lerobot-eval'}"],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    info = json.loads((tmp_path / "lerobot-eval" / "eval_info.json").read_text())
+    assert info["overall"]["pc_success"] == 0.0 and info["overall"]["n_episodes"] == 1

@@ -1,0 +1,116 @@
+"""The scripted expert that demonstrates the pick-up: Cartesian waypoints, damped-least-squares IK.
+
+It reads the cube's pose from the simulator (a policy never can), plans a top-down grasp
+(above the cube, down, close, lift), and at each control step solves the arm's inverse
+kinematics for the next point of that path with ``mj_jacSite`` on a copy of the model's
+state. It returns joint targets in lerobot units, as a leader arm would command them, so its
+episodes record exactly like teleoperated SO-101 data. ``speed`` is how fast it moves (m/s):
+robot owners' demonstrations differ in pace.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from zk0.sim import load_mujoco
+from zk0.sim.env import PickCubeEnv, to_lerobot
+
+mujoco = load_mujoco()
+ARM = 4  # shoulder_pan .. wrist_flex solve position and pointing; wrist_roll turns the jaws to the cube
+OPEN, CLOSED = 55.0, 0.0  # gripper targets (lerobot 0-100)
+ABOVE_M, LIFT_M = 0.07, 0.05  # approach height over the cube, and how high it is lifted
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """The matrix of ``v x .``."""
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def smoothstep(s: float) -> float:
+    s = min(1.0, max(0.0, s))
+    return s * s * (3 - 2 * s)
+
+
+class PickExpert:
+    """One episode's plan, made at ``reset`` from the env's state; ``act`` gives the next action."""
+
+    def __init__(self, env: PickCubeEnv, speed: float = 0.15):
+        self.env, self.speed = env, speed
+        self.model = env.model
+        self.ik = mujoco.MjData(self.model)  # IK works on its own copy: the simulation is not touched
+        self.site = self.model.site("grasp").id
+        self.dt = 1.0 / env.task.fps
+
+    def reset(self) -> None:
+        """Plan the path from where the grasp point is now to the cube and up."""
+        env = self.env
+        self.q = env.data.qpos[env.joint_ids].copy()  # the targets the expert last commanded (rad)
+        start = env.data.site("grasp").xpos.copy()
+        cube = env.cube_pos()
+        above = cube + [0, 0, ABOVE_M]
+        self.roll = self._roll_for(env.cube_yaw(), above)
+        # (where to, gripper, seconds): seconds from distance and speed, with floors for the slow parts
+        self.plan = [
+            (above, OPEN, max(0.6, np.linalg.norm(above - start) / self.speed)),
+            (cube, OPEN, max(0.5, ABOVE_M / (0.5 * self.speed))),
+            (cube, CLOSED, 0.6),
+            (cube + [0, 0, LIFT_M], CLOSED, max(0.5, LIFT_M / (0.5 * self.speed))),
+            (cube + [0, 0, LIFT_M], CLOSED, 10.0),
+        ]
+        self.leg, self.t, self.origin = 0, 0.0, start
+        self.gripper_from = float(env.joint_pos()[5])
+
+    def act(self) -> np.ndarray:
+        """The next joint targets (lerobot units)."""
+        goal, gripper, duration = self.plan[self.leg]
+        self.t += self.dt
+        s = smoothstep(self.t / duration)
+        point = self.origin + s * (goal - self.origin)
+        grip = self.gripper_from + s * (gripper - self.gripper_from)
+        if self.t >= duration and self.leg + 1 < len(self.plan):
+            self.leg, self.t, self.origin, self.gripper_from = self.leg + 1, 0.0, goal, gripper
+        self.q[:ARM] = self._solve(point)
+        self.q[ARM] = self.roll
+        action = to_lerobot(self.q, self.env.gripper_range)
+        action[5] = grip
+        return action
+
+    def _roll_for(self, yaw: float, above: np.ndarray) -> float:
+        """wrist_roll that turns the jaws square to the cube's faces (a cube repeats every 90°),
+        found with the arm posed over the cube: turning the roll turns the jaws by as much."""
+        low, high = self.model.jnt_range[self.model.joint("wrist_roll").id]
+        self.roll = 0.0
+        for _ in range(3):
+            q = self.q.copy()
+            q[:ARM], q[ARM] = self._solve(above), self.roll
+            self._kinematics(q)
+            closing = self.ik.site_xmat[self.site].reshape(3, 3)[:, 0]  # the jaws close along the site's x
+            offset = (yaw - np.arctan2(closing[1], closing[0]) + np.pi / 4) % (np.pi / 2) - np.pi / 4
+            self.roll = float(np.clip(self.roll + offset, low, high))
+        return self.roll
+
+    def _kinematics(self, q: np.ndarray) -> None:
+        self.ik.qpos[self.env.joint_ids] = q
+        mujoco.mj_kinematics(self.model, self.ik)
+        mujoco.mj_comPos(self.model, self.ik)
+
+    def _solve(self, target: np.ndarray, iterations: int = 15, damping: float = 1e-3) -> np.ndarray:
+        """Arm joints that put the grasp point at ``target`` with the jaws pointing straight down."""
+        q = self.q.copy()
+        q[ARM] = self.roll
+        jac_pos, jac_rot = np.zeros((3, self.model.nv)), np.zeros((3, self.model.nv))
+        dofs = [self.model.jnt_dofadr[self.model.joint(n).id] for n in range(ARM)]
+        limits = self.model.jnt_range[:ARM]
+        for _ in range(iterations):
+            self._kinematics(q)
+            mujoco.mj_jacSite(self.model, self.ik, jac_pos, jac_rot, self.site)
+            axis = -self.ik.site_xmat[self.site].reshape(3, 3)[:, 2]  # the way the fingers point
+            error = np.concatenate([target - self.ik.site_xpos[self.site], 0.3 * (np.array([0, 0, -1.0]) - axis)[:2]])
+            jac_axis = -skew(axis) @ jac_rot  # d(axis)/dt = omega x axis
+            jac = np.vstack([jac_pos[:, dofs], 0.3 * jac_axis[:2, dofs]])
+            step = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(len(error)), error)
+            q[:ARM] = np.clip(q[:ARM] + step, limits[:, 0], limits[:, 1])
+            if np.linalg.norm(error) < 1e-4:
+                break
+        return q[:ARM]
+

@@ -1,0 +1,97 @@
+"""What each simulated robot owner's set-up looks like, and the demonstration datasets recorded in it.
+
+Plain data, no MuJoCo: the registry and ``zk0 assets`` read it to know which datasets zk0
+records. The four clients differ the way robot owners do: each puts its cubes in its own part
+of the table, with its own cube colours, lighting, front-camera placement and demonstration
+pace; the server's evaluation set spans all of them (every region, colour and camera), so a
+policy is judged on conditions each client never saw.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True)
+class Look:
+    """What differs between robot owners' rooms: lighting, front-camera placement, table colour."""
+
+    light: float = 0.7  # diffuse intensity of the main light
+    light_tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    front_camera: tuple[float, float, float] = (0.55, 0.0, 0.45)  # where the front camera stands (m)
+    table_rgba: tuple[float, float, float, float] = (0.55, 0.45, 0.35, 1.0)
+
+
+@dataclass(frozen=True)
+class SimTask:
+    """One set-up: where cubes appear, their colours, the look, how long an episode may run."""
+
+    region: tuple[float, float, float, float] = (0.16, 0.28, -0.12, 0.12)  # x0, x1, y0, y1 (m) of the cube
+    colours: tuple[str, ...] = ("red", "blue")
+    distractor: bool = True  # a second cube of another colour: the task text says which one to pick
+    look: Look = field(default_factory=Look)
+    fps: int = 30
+    episode_s: float = 10.0
+
+    @property
+    def max_steps(self) -> int:
+        return round(self.fps * self.episode_s)
+
+
+@dataclass(frozen=True)
+class DemoSpec:
+    """A demonstration dataset: the set-up it is recorded in and how the expert moves."""
+
+    name: str
+    repo_id: str
+    task: SimTask
+    speed: float = 0.15  # the expert's pace (m/s)
+    episodes: int = 8
+    height: int = 128
+    width: int = 128
+    role: str = "client"
+
+
+SERVER_TASK = SimTask(region=(0.16, 0.28, -0.12, 0.12), colours=("red", "blue", "green", "yellow"))
+SIM_SPECS: dict[str, DemoSpec] = {
+    spec.name: spec
+    for spec in (
+        DemoSpec(
+            "sim-so101-left",
+            "zk0/sim_so101_left",
+            SimTask(region=(0.16, 0.22, 0.0, 0.12), colours=("red", "blue"), look=Look(light=0.8)),
+            speed=0.12,
+        ),
+        DemoSpec(
+            "sim-so101-right",
+            "zk0/sim_so101_right",
+            SimTask(
+                region=(0.16, 0.22, -0.12, 0.0),
+                colours=("green", "yellow"),
+                look=Look(light=0.55, light_tint=(1.0, 0.9, 0.75), front_camera=(0.55, -0.08, 0.42)),
+            ),
+            speed=0.18,
+        ),
+        DemoSpec(
+            "sim-so101-far-left",
+            "zk0/sim_so101_far_left",
+            SimTask(
+                region=(0.22, 0.28, 0.0, 0.12),
+                colours=("red", "green"),
+                look=Look(light=0.9, light_tint=(0.85, 0.9, 1.0), front_camera=(0.53, 0.07, 0.47)),
+            ),
+            speed=0.15,
+        ),
+        DemoSpec(
+            "sim-so101-far-right",
+            "zk0/sim_so101_far_right",
+            SimTask(
+                region=(0.22, 0.28, -0.12, 0.0),
+                colours=("blue", "yellow"),
+                look=Look(light=0.65, front_camera=(0.57, 0.0, 0.43), table_rgba=(0.5, 0.5, 0.5, 1.0)),
+            ),
+            speed=0.2,
+        ),
+        DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
+    )
+}
