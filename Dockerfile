@@ -15,7 +15,7 @@ ENV DEBIAN_FRONTEND=noninteractive \
 # Python 3.12 (Ubuntu 24.04's own), FFmpeg's libraries for torchcodec, tmux for --detached runs.
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
-        python3.12 python3.12-venv ffmpeg tmux ca-certificates \
+        python3.12 python3.12-venv ffmpeg tmux ca-certificates libegl1 libgl1 libosmesa6 \
     && rm -rf /var/lib/apt/lists/*
 
 # Ubuntu 24.04 images already use uid 1000 (user ubuntu), so zk0 gets its own.

@@ -58,6 +58,20 @@ zk0_ensure_ffmpeg() {
     zk0_log "FFmpeg libraries not found and not installable here; lerobot will decode video with PyAV (install 'ffmpeg' for torchcodec)."
 }
 
+# MuJoCo renders the simulator's cameras headless through EGL (MUJOCO_GL=egl, zk0.sim), or OSMesa.
+zk0_ensure_gl() {
+    if ldconfig -p 2>/dev/null | grep -E 'libEGL\.so|libOSMesa\.so' >/dev/null; then
+        return 0
+    fi
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        zk0_log "Installing EGL and OSMesa (MuJoCo renders the simulator's cameras with them)..."
+        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libgl1 libosmesa6; } >/dev/null 2>&1; then
+            return 0
+        fi
+    fi
+    zk0_log "No EGL or OSMesa library found and not installable here; the simulator (zk0.sim) cannot render until 'libegl1' or 'libosmesa6' is installed."
+}
+
 zk0_ensure_venv() {
     local python stamp want home
     if [ ! -x "$ZK0_VENV/bin/python" ]; then
@@ -96,6 +110,7 @@ zk0_export_env() {
 
 zk0_setup() {
     zk0_ensure_ffmpeg
+    zk0_ensure_gl
     zk0_ensure_venv || return 1
     zk0_export_env
 }

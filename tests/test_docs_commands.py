@@ -132,6 +132,9 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
         checkpoint_config(workspace / policy)  # the run folder's checkpoint the example names
         command = [sys.executable, "-c", ROLLOUT_UNTIL_ROBOT, *tokens[1:]]
         return subprocess.run(command, cwd=workspace, capture_output=True, text=True, timeout=300, check=False)
+    if tokens[:3] == ["python", "-m", "zk0.sim.lerobot_eval"]:  # run for real in tests/test_sim.py
+        command = [sys.executable, "-m", "zk0.sim.lerobot_eval", "--help"]
+        return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
     if tokens[:3] == ["python", "-m", "zk0.bench"]:
         command = [sys.executable, "-m", "zk0.bench", tokens[3], "--help"]
         return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
