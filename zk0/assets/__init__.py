@@ -20,7 +20,7 @@ from filelock import FileLock
 
 from zk0.assets.datasets import SPECS
 from zk0.errors import Zk0Error
-from zk0.sim.tasks import SIM_SPECS
+from zk0.sim.tasks import RECORDER_VERSION, SIM_SPECS
 
 GENERATOR_VERSION = 1
 MANIFEST = "zk0_manifest.json"
@@ -132,7 +132,8 @@ def generated_dataset(name: str, root: Path | None = None) -> Path | None:
         manifest = json.loads((target / MANIFEST).read_text())
     except (OSError, ValueError):
         return None
-    return target if manifest.get("asset") == name and manifest.get("version") == GENERATOR_VERSION else None
+    current = manifest.get("recorder") == RECORDER_VERSION if name in SIM_SPECS else True
+    return target if manifest.get("asset") == name and manifest.get("version") == GENERATOR_VERSION and current else None
 
 
 def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes: int | None = None) -> Path:
@@ -143,6 +144,8 @@ def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes:
     _writable_root(root or default_cache_root())
     spec = generated_spec(name)
     manifest = {"asset": name, "version": GENERATOR_VERSION, "seed": seed, "episodes": episodes or spec.episodes}
+    if name in SIM_SPECS:
+        manifest["recorder"] = RECORDER_VERSION
     _quiet_video_encoders()
     return _ensure(target, manifest, lambda tmp: _write_dataset(tmp, name, seed, episodes))
 

@@ -137,8 +137,9 @@ def _add_scene(spec: mujoco.MjSpec, look: Look, distractor: bool) -> None:
     front = np.array(look.front_camera)
     world.add_camera(name="front", pos=front.tolist(), xyaxes=_look_at(front, np.array([0.2, 0.0, 0.0])))
     gripper = spec.body("gripper")
-    # On the fixed jaw's outer side, looking down the fingers as an SO-101's wrist camera does.
-    gripper.add_camera(name="wrist", pos=[-0.055, 0.0, -0.02], xyaxes=[0, -1, 0, 0.74, 0, 0.67], fovy=75)
+    # Beside the jaws, looking down at the fingertips: both jaws at the edges, the cube between them.
+    eye, tips = np.array([0.0, 0.05, -0.03]), np.array([0.0135, 0.0, -0.10])
+    gripper.add_camera(name="wrist", pos=eye.tolist(), xyaxes=_look_at(eye, tips, up=[1.0, 0.0, 0.0]), fovy=75)
     # Between the pads where they close on a 3 cm cube: the point the expert brings to the cube.
     gripper.add_site(name="grasp", pos=[0.0135, -0.0002, -0.097], size=[0.004, 0, 0], group=4)
 
@@ -153,10 +154,10 @@ def _add_cube(world, name: str) -> None:
     )
 
 
-def _look_at(eye: np.ndarray, target: np.ndarray) -> list[float]:
-    """A camera's ``xyaxes`` so that it looks from ``eye`` at ``target`` with the world's z up."""
+def _look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> list[float]:
+    """A camera's ``xyaxes`` so that it looks from ``eye`` at ``target`` with ``up`` (in its parent's frame) up."""
     forward = (target - eye) / np.linalg.norm(target - eye)
-    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right = np.cross(forward, up)
     right /= np.linalg.norm(right)
     up = np.cross(right, forward)
     return [*right.tolist(), *up.tolist()]

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+# Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
+RECORDER_VERSION = 2
+
 
 @dataclass(frozen=True)
 class Look:
