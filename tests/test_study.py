@@ -81,3 +81,28 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     assert "FedProx / centralised, server action MSE: " in out
     assert "better than every local-only model on the other clients' held-out episodes" in out
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.e2e
+def test_the_sim_setting_judges_every_model_by_success_in_each_clients_conditions(tmp_path, capsys):
+    """The simulated setting: the offline matrix as in the others, and each model rolled out in the
+    simulator in the server's conditions and each client's own (the start in the server's only)."""
+    from zk0.bench.study import main
+
+    argv = ["--settings", "sim", "--clients", "2", "--rounds", "1", "--local-steps", "2", "--batch-size", "2"]
+    assert main([*argv, "--demos", "8", "--sim-episodes", "1", "--output-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    result = json.loads((tmp_path / "study.json").read_text())["results"]["sim"]
+    assert list(result["clients"].values()) == ["sim-so101-left", "sim-so101-right"]
+    assert result["server"] == "sim-so101-eval"
+    success = result["success"]
+    assert list(success) == ["start", "FedProx", "FedAvg", "centralised", "local 0", "local 1"]
+    assert list(success["start"]) == ["server"]
+    for label, row in success.items():
+        if label != "start":
+            assert list(row) == ["client 0", "client 1", "server"]
+        for rates in row.values():
+            assert 0.0 <= rates["success-rate"] <= rates["lifted-rate"] <= 1.0
+            assert 1 <= rates["episode-length"] <= 300
+    assert set(result["summary"]["other-clients"]) == {"local 0", "local 1"}
+    assert "success in the server's conditions" in out and "closed-loop success" in out

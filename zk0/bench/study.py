@@ -18,8 +18,13 @@ exactly as the federation's clients and server evaluate. It does so in two setti
 its own quarter of the table and its arm approaches them at its own rate
 (configs/noniid-registry.toml). Prints the matrices and writes JSON and a PNG chart.
 
-    python -m zk0.bench study [--settings mild noniid] [--rounds 8] [--local-steps 20]
-        [--clients 4] [--lr 8e-3] [--federation-lr LR] [--output-dir outputs/bench-study]
+The ``sim`` setting trains on the simulated SO-101 owners' demonstrations (configs/sim-registry.toml,
+``--demos`` per client) and also rolls every model out in the simulator (``--sim-episodes`` seeded
+episodes) in the server's span of conditions and in each client's own: success, not only MSE.
+
+    python -m zk0.bench study [--settings mild noniid sim] [--rounds 8] [--local-steps 20]
+        [--clients 4] [--lr 8e-3] [--federation-lr LR] [--demos 30] [--sim-episodes 10]
+        [--output-dir outputs/bench-study]
 """
 
 from __future__ import annotations
@@ -46,9 +51,15 @@ from zk0.errors import OneSentenceParser, positive
 from zk0.policy import PolicyBundle, build_policy, set_trainable, snapshot
 from zk0.registry import PROJECT_ROOT, Registry, load_registry
 from zk0.resume import find_resume_point
+from zk0.sim.tasks import SIM_SPECS
 from zk0.training import PooledTrainer, evaluate
 
-SETTINGS = {"mild": "", "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml")}
+SETTINGS = {
+    "mild": "",
+    "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml"),
+    "sim": str(PROJECT_ROOT / "configs" / "sim-registry.toml"),  # judged by success rate in the simulator too
+}
+SIM_SETTINGS = ("sim",)
 SERVER = "server"
 FEDERATIONS = ("FedProx", "FedAvg")
 Weights = dict[str, torch.Tensor]
@@ -56,7 +67,9 @@ Weights = dict[str, torch.Tensor]
 
 def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
     """The in-process baselines' config: the federation's own keys (zk0.bench.learning.federate)."""
+    server = next(e.name for e in load_registry(registry).entries if e.role == "server")
     return RunConfig(
+        server_eval_dataset=server,
         num_server_rounds=args.rounds,
         local_steps=args.local_steps,
         batch_size=args.batch_size,
@@ -67,12 +80,14 @@ def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
     )
 
 
-def generate(registry: Registry) -> None:
-    """The setting's synthetic datasets, generated once (the non-IID ones are not in `zk0 assets`);
-    all of them, as the server checks every client dataset of the registry before round 1."""
+def generate(registry: Registry, demos: int) -> None:
+    """The setting's generated datasets (the non-IID and simulated ones are not in `zk0 assets`);
+    all of them, as the server checks every client dataset of the registry before round 1. A
+    simulated client records ``demos`` demonstrations."""
     for entry in registry.entries:
         if entry.synthetic:
-            ensure_dataset(entry.name)
+            simulated = entry.name in SIM_SPECS and entry.role == "client"
+            ensure_dataset(entry.name, episodes=demos if simulated else None)
 
 
 def federated_models(
@@ -82,7 +97,13 @@ def federated_models(
     (None, after Flower's log and one sentence, if a federation failed)."""
     models = {}
     for label, mu in zip(FEDERATIONS, (args.proximal_mu, 0.0), strict=True):
-        keys = {"proximal-mu": mu, "registry": registry, "eval-frequency": args.rounds, "lr": args.federation_lr}
+        keys = {
+            "proximal-mu": mu,
+            "registry": registry,
+            "server-eval-dataset": study_run(args, registry).server_eval_dataset,
+            "eval-frequency": args.rounds,
+            "lr": args.federation_lr,
+        }
         history = federate(args, args.rounds, f"{setting}-{label.lower()}", **keys)
         if history is None:
             return None
@@ -135,6 +156,46 @@ def evaluate_all(models: dict[str, Weights], columns: dict, run: RunConfig) -> d
     return matrix
 
 
+def closed_loop_all(models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int) -> dict:
+    """Every trained model's success in closed loop, in each evaluation set's conditions (the server's
+    span, and each client's own set-up), with that set's processors: {model: {column: rates}}. The
+    untrained start is rolled out in the server's conditions only."""
+    from zk0.sim.closed_loop import ClosedLoop  # MuJoCo: only for the simulated setting
+
+    matrix: dict[str, dict[str, dict]] = {label: {} for label in models}
+    for column, (bundle, split, _) in columns.items():
+        height, width, _ = split.meta.features["observation.images.front"]["shape"]
+        loop = ClosedLoop(split.entry.name, episodes, run.seed, height, width)
+        try:
+            for label, weights in models.items():
+                if label == "start" and column != SERVER:
+                    continue
+                set_trainable(bundle, weights)
+                matrix[label][column] = loop(bundle)
+        finally:
+            loop.close()
+    return matrix
+
+
+def sim_summary(success: dict[str, dict[str, dict]], clients: int) -> dict:
+    """The sim targets: federated success / centralised success in the server's conditions, and the
+    federation against each local-only model in the conditions that client never saw."""
+    rate = {label: {c: v["success-rate"] for c, v in row.items()} for label, row in success.items()}
+    central = rate["centralised"][SERVER]
+    out: dict = {"vs-centralised": {label: rate[label][SERVER] / central if central else None for label in FEDERATIONS}}
+    others = {}
+    for c in range(clients):
+        rest = [f"client {j}" for j in range(clients) if j != c]
+        row = {label: statistics.mean(rate[label][col] for col in rest) for label in FEDERATIONS}
+        row["local-only"] = statistics.mean(rate[f"local {c}"][col] for col in rest)
+        others[f"local {c}"] = row
+    out["other-clients"] = others
+    out["federation-beats-every-local"] = {
+        label: all(row[label] > row["local-only"] for row in others.values()) for label in FEDERATIONS
+    }
+    return out
+
+
 def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
     """The study's two targets: federation vs centralised on the server set, and federation vs each
     local-only model on the other clients' held-out episodes."""
@@ -159,7 +220,7 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     registry_path = SETTINGS[setting]
     registry = load_registry(registry_path)
     run = study_run(args, registry_path)
-    generate(registry)
+    generate(registry, args.demos)
     started = time.perf_counter()
     cameras = registry.model_cameras()
     sessions = [build_client(run, entry, cameras, i) for i, entry in enumerate(registry.clients[: args.clients])]
@@ -173,7 +234,12 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     for session in sessions:
         models[f"local {session.index}"] = local_only(session, run, start)
     matrix = evaluate_all(models, columns, run)
+    closed_loop = {}
+    if setting in SIM_SETTINGS:
+        success = closed_loop_all(models, columns, run, args.sim_episodes)
+        closed_loop = {"success": success, "summary": sim_summary(success, len(sessions))}
     return {
+        **closed_loop,
         "registry": registry_path or "pyproject.toml",
         "clients": {f"client {s.index}": s.split.entry.name for s in sessions},
         "server": run.server_eval_dataset,
@@ -212,8 +278,27 @@ def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
         print(f"  {local:<8} {row['local-only']:>9.2f} {row['FedProx']:>9.2f} {row['FedAvg']:>9.2f}")
     for label, beats in s["federation-beats-every-local"].items():
         print(f"{label} better than every local-only model on the other clients' held-out episodes: {beats}")
+    if "success" in result:
+        print_success(result)
     seen = ", ".join(f"{n} {k}" for k, n in result["centralised-samples-from"].items())
     print(f"centralised trained on samples from: {seen}; {result['wall-s']:.0f} s")
+
+
+def print_success(result: dict) -> None:
+    """The closed-loop matrix (success %, lifted % in brackets) and the sim targets."""
+    success = result["success"]
+    columns = list(success["centralised"])
+    print("closed-loop success (lifted) in each set's conditions, %")
+    print(f"{'':<12}" + "".join(f"{c:>13}" for c in columns))
+    for label, row in success.items():
+        cells = [f"{row[c]['success-rate']:.0%} ({row[c]['lifted-rate']:.0%})" if c in row else "-" for c in columns]
+        print(f"{label:<12}" + "".join(f"{cell:>13}" for cell in cells))
+    s = result["summary"]
+    for label, ratio in s["vs-centralised"].items():
+        shown = "n/a (centralised 0%)" if ratio is None else f"{ratio:.2f}"
+        print(f"{label} / centralised, success in the server's conditions: {shown} (target >= 0.9)")
+    for label, beats in s["federation-beats-every-local"].items():
+        print(f"{label} succeeds more than every local-only model in the conditions that client never saw: {beats}")
 
 
 def chart(results: dict[str, dict], path: Path) -> None:
@@ -238,7 +323,7 @@ def chart(results: dict[str, dict], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench study", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=list(SETTINGS))
+    parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=["mild", "noniid"])
     parser.add_argument("--rounds", type=positive(int), default=8)
     parser.add_argument("--local-steps", type=positive(int), default=20)
     parser.add_argument("--batch-size", type=positive(int), default=8)
@@ -250,6 +335,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--proximal-mu", type=positive(float), default=RunConfig.proximal_mu, help="FedProx's mu")
     parser.add_argument("--clients", type=positive(int), default=4)
+    parser.add_argument("--demos", type=positive(int), default=30, help="demonstrations per simulated client (sim)")
+    parser.add_argument(
+        "--sim-episodes", type=positive(int), default=10, help="closed-loop episodes per model and condition (sim)"
+    )
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-study")
     parser.add_argument("--json", help="the figures (default: <output-dir>/study.json)")
