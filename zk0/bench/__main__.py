@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 from zk0.assets import ensure_all
-from zk0.bench import deployment, exchange, gpu, learning, memory, round, sim, step, study
+from zk0.bench import deployment, exchange, gpu, inputs, learning, memory, round, sim, step, study
 
 BENCHMARKS = {
     "learning": learning.main,
@@ -17,6 +17,7 @@ BENCHMARKS = {
     "deployment": deployment.main,
     "gpu": gpu.main,
     "sim": sim.main,
+    "inputs": inputs.main,
 }
 
 
