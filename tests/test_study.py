@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import copy
 import json
 import math
@@ -9,8 +10,10 @@ import math
 import pytest
 import torch
 
+from zk0.assets import ensure_dataset
 from zk0.client import build_client
 from zk0.policy import build_policy, set_trainable, snapshot
+from zk0.registry import load_registry
 from zk0.training import PooledTrainer
 
 
@@ -83,26 +86,33 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.mark.e2e
-def test_the_sim_setting_judges_every_model_by_success_in_each_clients_conditions(tmp_path, capsys):
-    """The simulated setting: the offline matrix as in the others, and each model rolled out in the
-    simulator in the server's conditions and each client's own (the start in the server's only)."""
-    from zk0.bench.study import main
+def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_them_up():
+    """The sim setting's closed-loop matrix (the federations that feed it are the other settings'
+    code, tested end to end above): every model in the server's conditions and each client's own,
+    with that set's processors; the start in the server's only; the targets computed from it."""
+    from zk0.bench.study import closed_loop_all, evaluation_sets, sim_summary, study_run
 
-    argv = ["--settings", "sim", "--clients", "2", "--rounds", "1", "--local-steps", "2", "--batch-size", "2"]
-    assert main([*argv, "--demos", "8", "--sim-episodes", "1", "--output-dir", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
-    result = json.loads((tmp_path / "study.json").read_text())["results"]["sim"]
-    assert list(result["clients"].values()) == ["sim-so101-left", "sim-so101-right"]
-    assert result["server"] == "sim-so101-eval"
-    success = result["success"]
-    assert list(success) == ["start", "FedProx", "FedAvg", "centralised", "local 0", "local 1"]
-    assert list(success["start"]) == ["server"]
-    for label, row in success.items():
-        if label != "start":
-            assert list(row) == ["client 0", "client 1", "server"]
+    args = argparse.Namespace(rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2)
+    registry_path = "configs/sim-registry.toml"
+    registry = load_registry(registry_path)
+    run = study_run(args, registry_path)
+    assert run.server_eval_dataset == "sim-so101-eval"
+    for entry in registry.entries:
+        ensure_dataset(entry.name)
+    sessions = [build_client(run, e, registry.model_cameras(), i) for i, e in enumerate(registry.clients[:2])]
+    columns = evaluation_sets(sessions, registry, run)
+    start = snapshot(sessions[0].bundle)
+    labels = ["start", "FedProx", "FedAvg", "centralised", "local 0", "local 1"]
+    success = closed_loop_all(dict.fromkeys(labels, start), columns, run, episodes=1)
+    assert list(success) == labels and list(success["start"]) == ["server"]
+    for label in labels[1:]:
+        assert list(success[label]) == ["client 0", "client 1", "server"]
+    for row in success.values():
         for rates in row.values():
-            assert 0.0 <= rates["success-rate"] <= rates["lifted-rate"] <= 1.0
-            assert 1 <= rates["episode-length"] <= 300
-    assert set(result["summary"]["other-clients"]) == {"local 0", "local 1"}
-    assert "success in the server's conditions" in out and "closed-loop success" in out
+            assert 0.0 <= rates["success-rate"] <= rates["lifted-rate"] <= 1.0 and 1 <= rates["episode-length"] <= 300
+    # one untrained model everywhere: no federation beats a local-only model, and 0/0 is no ratio
+    summary = sim_summary(success, clients=2)
+    assert summary["federation-beats-every-local"] == {"FedProx": False, "FedAvg": False}
+    assert set(summary["other-clients"]) == {"local 0", "local 1"}
+    if success["centralised"]["server"]["success-rate"] == 0:
+        assert summary["vs-centralised"] == {"FedProx": None, "FedAvg": None}
