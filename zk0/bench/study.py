@@ -177,23 +177,26 @@ def closed_loop_all(models: dict[str, Weights], columns: dict, run: RunConfig, e
     return matrix
 
 
+def against_local_only(values: dict[str, dict[str, float]], clients: int, better) -> dict:
+    """Each federation against each local-only model on the other clients' sets (the mean of
+    ``values``, model -> column -> figure), and whether it is ``better(federated, local)`` for all."""
+    others = {}
+    for c in range(clients):
+        rest = [f"client {j}" for j in range(clients) if j != c]
+        row = {label: statistics.mean(values[label][col] for col in rest) for label in FEDERATIONS}
+        row["local-only"] = statistics.mean(values[f"local {c}"][col] for col in rest)
+        others[f"local {c}"] = row
+    beats = {label: all(better(row[label], row["local-only"]) for row in others.values()) for label in FEDERATIONS}
+    return {"other-clients": others, "federation-beats-every-local": beats}
+
+
 def sim_summary(success: dict[str, dict[str, dict]], clients: int) -> dict:
     """The sim targets: federated success / centralised success in the server's conditions, and the
     federation against each local-only model in the conditions that client never saw."""
     rate = {label: {c: v["success-rate"] for c, v in row.items()} for label, row in success.items()}
     central = rate["centralised"][SERVER]
-    out: dict = {"vs-centralised": {label: rate[label][SERVER] / central if central else None for label in FEDERATIONS}}
-    others = {}
-    for c in range(clients):
-        rest = [f"client {j}" for j in range(clients) if j != c]
-        row = {label: statistics.mean(rate[label][col] for col in rest) for label in FEDERATIONS}
-        row["local-only"] = statistics.mean(rate[f"local {c}"][col] for col in rest)
-        others[f"local {c}"] = row
-    out["other-clients"] = others
-    out["federation-beats-every-local"] = {
-        label: all(row[label] > row["local-only"] for row in others.values()) for label in FEDERATIONS
-    }
-    return out
+    ratios = {label: rate[label][SERVER] / central if central else None for label in FEDERATIONS}
+    return {"vs-centralised": ratios, **against_local_only(rate, clients, lambda fed, local: fed > local)}
 
 
 def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
@@ -201,18 +204,8 @@ def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
     local-only model on the other clients' held-out episodes."""
     mse = {label: {c: v["action-mse"] for c, v in row.items()} for label, row in matrix.items()}
     central = mse["centralised"][SERVER]
-    out: dict = {"vs-centralised": {label: mse[label][SERVER] / central for label in FEDERATIONS}}
-    others = {}
-    for c in range(clients):
-        rest = [f"client {j}" for j in range(clients) if j != c]
-        row = {label: statistics.mean(mse[label][col] for col in rest) for label in FEDERATIONS}
-        row["local-only"] = statistics.mean(mse[f"local {c}"][col] for col in rest)
-        others[f"local {c}"] = row
-    out["other-clients"] = others
-    out["federation-beats-every-local"] = {
-        label: all(row[label] < row["local-only"] for row in others.values()) for label in FEDERATIONS
-    }
-    return out
+    ratios = {label: mse[label][SERVER] / central for label in FEDERATIONS}
+    return {"vs-centralised": ratios, **against_local_only(mse, clients, lambda fed, local: fed < local)}
 
 
 def run_setting(args: argparse.Namespace, setting: str) -> dict | None:

@@ -17,7 +17,7 @@ import numpy as np
 
 from zk0.sim import cannot_render, load_mujoco
 from zk0.sim.scene import CUBE_HALF, JAW_PADS, build_spec
-from zk0.sim.tasks import SimTask
+from zk0.sim.tasks import SIM_SPECS, SimTask
 
 mujoco = load_mujoco()
 
@@ -202,9 +202,7 @@ class PickCubeEnv(gym.Env):
         return {"is_success": success, **self.outcome}
 
 
-def make_env(conditions: str = "sim-so101-eval", height: int = 128, width: int = 128, **_) -> PickCubeEnv:
+def make_env(conditions: str = "sim-so101-eval", height: int = 128, width: int = 128) -> PickCubeEnv:
     """The env in one recorded set-up's conditions (``zk0.sim.tasks.SIM_SPECS``), by name: what
     ``gym.make`` builds for lerobot's ``zk0_so101`` env config."""
-    from zk0.sim.tasks import SIM_SPECS
-
     return PickCubeEnv(SIM_SPECS[conditions].task, height, width)
