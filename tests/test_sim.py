@@ -114,6 +114,14 @@ def test_sim_evaluation_needs_a_simulated_server_set():
     assert run.sim_eval_episodes == 3
 
 
+def test_lerobots_env_config_refuses_unknown_conditions_in_one_sentence():
+    from zk0.sim.lerobot_env import PickCubeEnvConfig
+
+    with pytest.raises(ValueError, match=r"^--env.conditions got 'kitchen'; expected one of the recorded set-ups \["):
+        PickCubeEnvConfig(conditions="kitchen")
+    assert PickCubeEnvConfig(conditions="sim-so101-left").gym_kwargs["conditions"] == "sim-so101-left"
+
+
 def test_a_machine_that_cannot_render_says_so_in_one_sentence():
     code = (
         "from zk0.sim import RenderError\n"

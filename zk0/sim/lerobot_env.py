@@ -15,6 +15,7 @@ from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
 from zk0.sim.env import JOINTS
+from zk0.sim.tasks import SIM_SPECS
 
 GYM_TASK = "PickCube-v0"
 GYM_ID = f"zk0/{GYM_TASK}"  # gymnasium ids allow no dots in the namespace, so not this module's name
@@ -46,6 +47,10 @@ class PickCubeEnvConfig(EnvConfig):
     )
 
     def __post_init__(self):
+        if self.conditions not in SIM_SPECS:
+            raise ValueError(
+                f"--env.conditions got {self.conditions!r}; expected one of the recorded set-ups {sorted(SIM_SPECS)}."
+            )
         image = PolicyFeature(type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3))
         self.features = {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(len(JOINTS),)),
