@@ -7,7 +7,8 @@ import pytest
 from flwr.app import ArrayRecord, ConfigRecord, Error, Message, MessageType, MetricRecord, RecordDict
 from loguru import logger
 
-from zk0.aggregation import RunCannotTrain, ValidatingFedProx, array_signature, update_problem
+from zk0.aggregation import RunCannotTrain, ValidatingStrategy, array_signature, update_problem
+from zk0.server_optimisers import make_strategy
 from zk0.errors import REFUSED
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
@@ -44,21 +45,22 @@ class Recorder:
     def record_clients(self, phase, rnd, replies, aggregate, failures):
         self.recorded.append((phase, rnd, len(replies), aggregate, failures))
 
-    def round_ended(self, rnd, arrays, evaluation):
+    def round_ended(self, rnd, arrays, evaluation, server_state):
         self.recorded.append(("ended", rnd, evaluation))
 
 
 @pytest.fixture
 def strategy():
     recorded = []
-    strat = ValidatingFedProx(
+    strat = ValidatingStrategy(
+        make_strategy("fedavg", 0.0, 0.9, min_train_nodes=2),
         expected=array_signature(arrays(0.0)),
         evaluates_in=lambda rnd: rnd % 2 == 0,
         observer=Recorder(recorded),
         last_round=4,
         proximal_mu=0.01,
-        min_train_nodes=2,
     )
+    strat.current = arrays(0.0)  # the global model the replies started from (configure_train sets it)
     strat.recorded = recorded
     return strat
 

@@ -57,15 +57,15 @@ def test_models_best_keeps_the_lowest_server_mse_round_zero_included(tmp_path, c
         saved = load_file(best / "model.safetensors")
         return {n: saved[n] for n in names}
 
-    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0, "policy-loss": 1.0}))
-    artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 80.0, "policy-loss": 2.0}))
+    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0, "policy-loss": 1.0}), {})
+    artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 80.0, "policy-loss": 2.0}), {})
     assert json.loads((best / "zk0_round.json").read_text())["round"] == 0
     assert all(torch.equal(best_weights()[n], torch.from_numpy(start[n].numpy())) for n in names)
     assert artifacts.summary() == (
         "no round beat the starting model (server action MSE 50), so models/best is round 0, the model this run started from"
     )
-    artifacts.round_ended(2, rounds[2], MetricRecord({"action-mse": 40.0, "policy-loss": 0.5}))
-    artifacts.round_ended(3, rounds[3], MetricRecord({"action-mse": 45.0, "policy-loss": 0.4}))
+    artifacts.round_ended(2, rounds[2], MetricRecord({"action-mse": 40.0, "policy-loss": 0.5}), {})
+    artifacts.round_ended(3, rounds[3], MetricRecord({"action-mse": 45.0, "policy-loss": 0.4}), {})
     assert json.loads((best / "zk0_round.json").read_text()) == {
         "round": 2,
         "server-evaluate": {"action-mse": 40.0, "policy-loss": 0.5},

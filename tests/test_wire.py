@@ -29,17 +29,19 @@ def test_a_mismatched_dtype_is_named():
 
 def test_fedavg_averages_decoded_values(flower_task):
     from tests.test_aggregation import Recorder, reply
-    from zk0.aggregation import ValidatingFedProx, array_signature
+    from zk0.aggregation import ValidatingStrategy, array_signature
+    from zk0.server_optimisers import make_strategy
 
     template = {"a": torch.zeros(2, 3), "b": torch.zeros(4)}
-    strategy = ValidatingFedProx(
+    strategy = ValidatingStrategy(
+        make_strategy("fedavg", 0.0, 0.9, min_train_nodes=2),
         expected=array_signature(encode(template, "float32")),
         evaluates_in=lambda _: True,
         observer=Recorder([]),
         last_round=1,
         wire_dtype="bfloat16",
-        min_train_nodes=2,
     )
+    strategy.current = encode(template, "float32")
     updates = [
         {"a": torch.full((2, 3), 1.001), "b": torch.full((4,), 7.0)},
         {"a": torch.full((2, 3), 3.0), "b": torch.zeros(4)},

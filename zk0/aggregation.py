@@ -1,11 +1,15 @@
-"""FedProx with update validation, evaluation every N rounds, and per-client records.
+"""zk0's additions to whichever Flower strategy a run picks, by composition.
 
-Flower's ``FedProx`` already does the right thing (FedAvg weighted by ``num-examples``
-plus ``proximal-mu`` in the train config). These overrides only add what a federation
-of robot owners needs: replies whose arrays are non-finite or do not match the global
-model's names/shapes/dtypes are rejected and logged, not averaged; federated evaluation
-runs every ``eval-frequency`` rounds; and each client's own metrics and dataset
-statistics, and the end of every round, go to an observer (zk0.round_artifacts) that writes them.
+``ValidatingStrategy`` wraps a Flower strategy of the FedAvg family (the server optimiser the
+run chose: zk0.server_optimisers) and lets it sample, average and step as it does. Around it,
+it adds what a federation of robot owners needs: replies whose arrays are non-finite or do
+not match the global model's names/shapes/dtypes are rejected and logged, not averaged; an
+update far larger than the others' is scaled down to ``update-clip`` times their median
+(one client's broken normalisation, bug or scaled update cannot wreck the model); FedProx's
+``proximal-mu`` goes into every train config, whatever the optimiser; federated evaluation runs
+every ``eval-frequency`` rounds; a resumed run keeps its round numbers; and each client's own
+metrics and dataset statistics, and the end of every round, go to an observer
+(zk0.round_artifacts) that writes them.
 
 Federated evaluation rides on the next round's train message: the model a client receives
 for round N+1 is the one round N produced, so it evaluates that first and reports it as round
@@ -17,16 +21,18 @@ last round's model, which no train message follows, gets an evaluate message of 
 from __future__ import annotations
 
 import random
+import statistics
 from collections.abc import Callable, Iterable
 from typing import Protocol
 
 import numpy as np
-from flwr.app import ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
+from flwr.app import Array, ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
 from flwr.serverapp import Grid
-from flwr.serverapp.strategy import FedProx
+from flwr.serverapp.strategy import FedAvg, Strategy
 from loguru import logger
 
 from zk0.errors import REFUSED, Zk0Error
+from zk0.server_optimisers import optimiser_name, optimiser_state
 from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, decode, encode
 
 
@@ -43,8 +49,15 @@ class RoundObserver(Protocol):
     ) -> None:
         """A phase's replies that counted, their weighted aggregate, failed clients' reasons by index."""
 
-    def round_ended(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
-        """The round is over: ``arrays`` is the global model, ``evaluation`` the server's of it."""
+    def round_ended(
+        self,
+        server_round: int,
+        arrays: ArrayRecord,
+        evaluation: MetricRecord | None,
+        server_state: dict[str, np.ndarray],
+    ) -> None:
+        """The round is over: ``arrays`` is the global model, ``evaluation`` the server's of it,
+        ``server_state`` what the server optimiser carries into the next round."""
 
 
 class RunCannotTrain(Zk0Error):
@@ -71,11 +84,28 @@ def update_problem(arrays: ArrayRecord, expected: dict[str, tuple[tuple[int, ...
     return None
 
 
-class ValidatingFedProx(FedProx):
-    """FedProx that rejects malformed updates and records each client's reply."""
+def update_norm(update: ArrayRecord, current: ArrayRecord) -> float:
+    """How far an update moves the global model: the L2 norm of the difference, over every array."""
+    total = sum(np.sum(np.square(update[n].numpy() - current[n].numpy()), dtype=np.float64) for n in current)
+    return float(np.sqrt(total))
+
+
+def scaled_update(update: ArrayRecord, current: ArrayRecord, scale: float) -> ArrayRecord:
+    """``update`` with its change to the global model multiplied by ``scale``."""
+    moved = {}
+    for name, array in current.items():
+        start = array.numpy()
+        moved[name] = Array(np.asarray(start + scale * (update[name].numpy() - start), dtype=start.dtype))
+    return ArrayRecord(moved)
+
+
+class ValidatingStrategy(Strategy):
+    """A Flower strategy (``inner``) that rejects malformed updates, bounds outsized ones and
+    records each client's reply; sampling, averaging and the server's step stay ``inner``'s."""
 
     def __init__(
         self,
+        inner: FedAvg,
         *,
         expected: dict[str, tuple[tuple[int, ...], str]],
         evaluates_in: Callable[[int], bool],
@@ -83,17 +113,34 @@ class ValidatingFedProx(FedProx):
         last_round: int,
         round_offset: int = 0,
         wire_dtype: str = "float32",
-        **kwargs,
+        proximal_mu: float = 0.0,
+        update_clip: float = 0.0,
     ) -> None:
-        super().__init__(**kwargs)
+        self.inner = inner
         self.expected = expected
         self.wire_dtype = wire_dtype  # the global model is kept in fp32; messages carry this dtype
         self.evaluates_in = evaluates_in
         self.observer = observer
         self.last_round = last_round  # of the whole run, resumed rounds included
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
+        self.proximal_mu = proximal_mu
+        self.update_clip = update_clip  # an update's norm is bounded by this times the others' median; 0 = off
+        self.current: ArrayRecord | None = None  # the global model this round's updates start from
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
+
+    def summary(self) -> None:
+        logger.info(
+            "Server optimiser {} with proximal-mu {}, update-clip {}",
+            optimiser_name(self.inner),
+            self.proximal_mu,
+            self.update_clip or "off",
+        )
+        self.inner.summary()
+
+    def server_state(self) -> dict[str, np.ndarray]:
+        """What the server optimiser carries into the next round (kept with each checkpoint)."""
+        return optimiser_state(self.inner, list(self.expected))
 
     def start(self, *, evaluate_fn: Callable[[int, ArrayRecord], MetricRecord | None] | None = None, **kwargs):
         """Flower's round loop, run as it is. ``evaluate_fn`` (the server's evaluation, the last step
@@ -105,7 +152,7 @@ class ValidatingFedProx(FedProx):
                 return None
             server_round = flower_round + self.round_offset
             evaluation = evaluate_fn(server_round, arrays) if evaluate_fn else None
-            self.observer.round_ended(server_round, arrays, evaluation)
+            self.observer.round_ended(server_round, arrays, evaluation, self.server_state())
             return evaluation
 
         return super().start(evaluate_fn=evaluate_and_end_round, **kwargs)
@@ -114,8 +161,12 @@ class ValidatingFedProx(FedProx):
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
         server_round += self.round_offset
+        self.current = arrays
+        config = ConfigRecord({**config, "proximal-mu": self.proximal_mu})  # FedProx's key, for any optimiser
+        messages = list(self.inner.configure_train(server_round, arrays, config, grid))
         wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
-        messages = list(super().configure_train(server_round, wire, config, grid))
+        for msg in messages:  # the optimiser keeps the fp32 model; clients get the wire dtype
+            msg.content[self.inner.arrayrecord_key] = wire
         self.sampled = {msg.metadata.dst_node_id for msg in messages}
         previous = server_round - 1
         if previous > self.round_offset and self.evaluates_in(previous):
@@ -124,10 +175,11 @@ class ValidatingFedProx(FedProx):
 
     def _evaluate_first(self, messages: list[Message], previous: int) -> None:
         """Ask a ``fraction-evaluate`` sample of the training clients to evaluate round ``previous`` first."""
-        count = min(len(messages), max(self.min_evaluate_nodes, int(len(messages) * self.fraction_evaluate)))
-        for msg in random.sample(messages, count) if self.fraction_evaluate > 0 else []:
-            config = ConfigRecord({**msg.content[self.configrecord_key], EVALUATE_ROUND: previous})
-            msg.content = RecordDict({**msg.content, self.configrecord_key: config})
+        inner = self.inner
+        count = min(len(messages), max(inner.min_evaluate_nodes, int(len(messages) * inner.fraction_evaluate)))
+        for msg in random.sample(messages, count) if inner.fraction_evaluate > 0 else []:
+            config = ConfigRecord({**msg.content[inner.configrecord_key], EVALUATE_ROUND: previous})
+            msg.content = RecordDict({**msg.content, inner.configrecord_key: config})
 
     def _log_missing(self, server_round: int, valid: list[Message]) -> None:
         """Name every sampled node whose update did not arrive (crashed, offline, rejected)."""
@@ -146,15 +198,15 @@ class ValidatingFedProx(FedProx):
                 self._log_failure(server_round, msg)
                 continue
             try:  # averaged in fp32, whatever travelled
-                msg.content[self.arrayrecord_key] = ArrayRecord(
-                    decode(msg.content[self.arrayrecord_key], self.wire_dtype)
+                msg.content[self.inner.arrayrecord_key] = ArrayRecord(
+                    decode(msg.content[self.inner.arrayrecord_key], self.wire_dtype)
                 )
             except Zk0Error as err:
                 logger.warning(
                     "Round {}: rejected the update of node {}: {}", server_round, msg.metadata.src_node_id, err
                 )
                 continue
-            problem = update_problem(msg.content[self.arrayrecord_key], self.expected)
+            problem = update_problem(msg.content[self.inner.arrayrecord_key], self.expected)
             if problem:
                 logger.warning(
                     "Round {}: rejected the update of node {}: {}", server_round, msg.metadata.src_node_id, problem
@@ -181,23 +233,56 @@ class ValidatingFedProx(FedProx):
         valid = self.valid_updates(server_round, list(replies))
         self._log_missing(server_round, valid)
         self._record_evaluation(server_round - 1, valid)
-        if len(valid) < self.min_train_nodes and server_round == self.round_offset + 1:
+        if len(valid) < self.inner.min_train_nodes and server_round == self.round_offset + 1:
             raise RunCannotTrain(
                 f"Round {server_round} got {len(valid)} usable update(s), fewer than min-train-clients="
-                f"{self.min_train_nodes}, so this run cannot train; the clients' reasons are above."
+                f"{self.inner.min_train_nodes}, so this run cannot train; the clients' reasons are above."
             )
-        if len(valid) < self.min_train_nodes:
+        if len(valid) < self.inner.min_train_nodes:
             logger.warning(
                 "Round {}: {} valid updates, fewer than min-train-clients={}; the global model is kept.",
                 server_round,
                 len(valid),
-                self.min_train_nodes,
+                self.inner.min_train_nodes,
             )
             self.observer.record_clients("train", server_round, [m.content for m in valid], None, {})
             return None, None
-        arrays, metrics = super().aggregate_train(server_round, valid)
+        self.bound_updates(server_round, valid)
+        arrays, metrics = self.inner.aggregate_train(server_round, valid)
         self.observer.record_clients("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
+
+    def bound_updates(self, server_round: int, valid: list[Message]) -> None:
+        """Scale down every update whose size (L2 norm of its change to the global model) is above
+        ``update-clip`` times the median of the other updates' sizes, naming the client; each
+        reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1: untouched)."""
+        key = self.inner.arrayrecord_key
+        norms = [update_norm(msg.content[key], self.current) for msg in valid]
+        for i, msg in enumerate(valid):
+            others = norms[:i] + norms[i + 1 :]
+            limit = self.update_clip * statistics.median(others) if others and self.update_clip else 0.0
+            scale = limit / norms[i] if 0 < limit < norms[i] else 1.0
+            if scale < 1:
+                msg.content[key] = scaled_update(msg.content[key], self.current, scale)
+                logger.warning(
+                    "Round {}: {}'s update is {:.3g}x the median of the others' ({:.4g} against {:.4g}); "
+                    "scaled down to update-clip={:g}x.",
+                    server_round,
+                    self._who(msg),
+                    norms[i] * self.update_clip / limit,
+                    norms[i],
+                    limit / self.update_clip,
+                    self.update_clip,
+                )
+            (metrics,) = msg.content.metric_records.values()
+            metrics["update-norm"], metrics["update-scale"] = norms[i], scale
+
+    def _who(self, msg: Message) -> str:
+        """``client 2 (synth-so100-stacking)``, or the node id of a reply that does not say."""
+        if CLIENT not in msg.content:
+            return f"node {msg.metadata.src_node_id}"
+        client = msg.content[CLIENT]
+        return f"client {int(client['index'])} ({client['dataset']})"
 
     def _record_evaluation(self, evaluated_round: int, replies: list[Message]) -> None:
         """The evaluations that train replies carry: the clients' metrics for ``evaluated_round``, or
@@ -207,7 +292,7 @@ class ValidatingFedProx(FedProx):
         contents = [
             RecordDict({"metrics": MetricRecord(e), CLIENT: client}) for client, e in carried if "error" not in e
         ]
-        aggregate = self.evaluate_metrics_aggr_fn(contents, self.weighted_by_key) if contents else None
+        aggregate = self.inner.evaluate_metrics_aggr_fn(contents, self.inner.weighted_by_key) if contents else None
         if contents:
             logger.info(
                 "Round {} client evaluation (sent with round {}): {}", evaluated_round, evaluated_round + 1, aggregate
@@ -221,7 +306,7 @@ class ValidatingFedProx(FedProx):
         server_round += self.round_offset
         if server_round != self.last_round:
             return []  # evaluated first thing in the next round's train message
-        return super().configure_evaluate(
+        return self.inner.configure_evaluate(
             server_round, encode(arrays.to_torch_state_dict(), self.wire_dtype), config, grid
         )
 
@@ -236,6 +321,6 @@ class ValidatingFedProx(FedProx):
             if (client := self.node_clients.get(msg.metadata.src_node_id)) is not None:
                 failures[client] = msg.error.reason
         answered = [m for m in replies if not m.has_error()]  # the failures are logged once, above
-        metrics = super().aggregate_evaluate(server_round, answered) if answered else None
+        metrics = self.inner.aggregate_evaluate(server_round, answered) if answered else None
         self.observer.record_clients("evaluate", server_round, [m.content for m in answered], metrics, failures)
         return metrics

@@ -23,9 +23,11 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
 
+import numpy as np
 from lerobot.datasets.utils import serialize_dict
 from matplotlib.figure import Figure  # the object API: no pyplot state, no GUI backend
 from matplotlib.ticker import MaxNLocator
+from safetensors.numpy import save_file
 
 from zk0 import adapters
 from zk0.errors import Zk0Error
@@ -145,6 +147,7 @@ def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, wi
 
 
 ROUND_FILE = "zk0_round.json"  # in every checkpoint: the round it holds and the server's evaluation of it
+SERVER_STATE_FILE = "server_optimiser.safetensors"  # in every checkpoint: the server optimiser's state
 
 
 def save_checkpoint(
@@ -154,6 +157,7 @@ def save_checkpoint(
     client_stats: dict[str, dict],
     name: str | None = None,
     evaluation: dict | None = None,
+    server_state: tuple[str, dict[str, np.ndarray]] | None = None,
 ) -> Path:
     """A lerobot pretrained-model directory, written to a temporary name and renamed into place.
 
@@ -162,6 +166,8 @@ def save_checkpoint(
     ``models/``; ``zk0_round.json`` says which round it holds and how the server evaluated it.
     Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
     client's own statistics, so a robot owner can run the policy normalised for their robot.
+    ``server_state`` (the server optimiser's name and arrays) goes to ``server_optimiser.safetensors``,
+    for a resumed run to continue the optimiser where it was.
     """
     models = run_dir / "models"
     models.mkdir(parents=True, exist_ok=True)
@@ -176,6 +182,9 @@ def save_checkpoint(
         for client, stats in client_stats.items():
             write_json(staging / "client_stats" / f"{client}.json", serialize_dict(stats))
         write_json(staging / ROUND_FILE, {"round": server_round, "server-evaluate": evaluation or {}})
+        if server_state is not None:
+            optimiser, arrays = server_state
+            save_file(arrays, staging / SERVER_STATE_FILE, metadata={"server-optimiser": optimiser})
         if final.exists():
             shutil.rmtree(final)
         staging.rename(final)

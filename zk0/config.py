@@ -24,6 +24,7 @@ WIRE_DTYPES = ("bfloat16", "float32")  # zk0.wire encodes them
 OFFLINE_MODELS = ("tiny", "full-size")  # built from a generated backbone with random weights (zk0.policy)
 PEFT_METHODS = ("none", "lora")  # zk0.adapters
 LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.adapters)
+SERVER_OPTIMISERS = ("fedavg", "fedavgm", "nesterov", "fedadam", "fedyogi")  # zk0.server_optimisers
 
 
 class ConfigError(Zk0Error):
@@ -40,6 +41,10 @@ class RunConfig:
     batch_size: int = 8
     lr: float = 1e-4
     proximal_mu: float = 0.01
+    server_optimiser: str = "fedavg"  # how the server steps from the averaged update (zk0.server_optimisers)
+    server_lr: float = 0.0  # the server optimiser's learning rate; 0 = its default
+    server_momentum: float = 0.9  # FedAvgM's and Nesterov's momentum, FedAdam's and FedYogi's beta_1
+    update_clip: float = 3.0  # an update larger than this times the others' median is scaled down; 0 = off
     fraction_train: float = 1.0
     min_train_clients: int = 2
     fraction_evaluate: float = 1.0
@@ -102,6 +107,8 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "batch_size": (1, None, False),
     "lr": (0, 1, True),
     "proximal_mu": (0, None, False),
+    "server_lr": (0, None, False),
+    "server_momentum": (0, 0.99, False),
     "fraction_train": (0, 1, True),
     "min_train_clients": (1, None, False),
     "fraction_evaluate": (0, 1, False),
@@ -177,12 +184,31 @@ def _check_choices(cfg: RunConfig) -> None:
     if not cfg.model:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")
     _check_peft(cfg)
+    _check_server_optimiser(cfg)
     if cfg.sim_eval_episodes and cfg.server_eval_dataset not in SIM_SPECS:
         raise ConfigError(
             f"Run-config key 'sim-eval-episodes' = {cfg.sim_eval_episodes} rolls the model out in the simulator, "
             f"and server-eval-dataset={cfg.server_eval_dataset!r} was not recorded there; expected one of "
             f"{sorted(n for n, s in SIM_SPECS.items() if s.role == 'server')} (registry='configs/sim-registry.toml', "
             "or ./train.sh --preset sim) or sim-eval-episodes=0."
+        )
+
+
+def _check_server_optimiser(cfg: RunConfig) -> None:
+    """A known optimiser; plain averaging has no learning rate; a clip that can only scale down."""
+    if cfg.server_optimiser not in SERVER_OPTIMISERS:
+        raise ConfigError(
+            f"Run-config key 'server-optimiser' got {cfg.server_optimiser!r}; expected one of {list(SERVER_OPTIMISERS)}."
+        )
+    if cfg.server_optimiser == "fedavg" and cfg.server_lr not in (0.0, 1.0):
+        raise ConfigError(
+            f"Run-config key 'server-lr' got {cfg.server_lr!r}, and server-optimiser='fedavg' takes the average as "
+            "it is; expected 0 (or 1), or server-optimiser='fedavgm' with server-momentum=0 for a scaled step."
+        )
+    if 0 < cfg.update_clip < 1 or cfg.update_clip < 0:
+        raise ConfigError(
+            f"Run-config key 'update-clip' got {cfg.update_clip!r}; expected 0 (off) or a factor >= 1 "
+            "(an update larger than that many times the others' median is scaled down to it)."
         )
 
 

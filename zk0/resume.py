@@ -4,7 +4,8 @@ A run folder holds everything the server needs: checkpoints are renamed into pla
 once complete, so the highest ``models/checkpoint_round_<N>`` is the resume point; the
 metric history keeps rounds up to N (a round after N that a crash interrupted is run
 again, so every round appears once); the checkpoint's trainable weights become the global
-model and its ``client_stats/`` the clients' statistics. Rounds continue from N + 1 and the
+model, its ``client_stats/`` the clients' statistics and its ``server_optimiser.safetensors``
+the server optimiser's state (momentum, moments). Rounds continue from N + 1 and the
 learning-rate schedule, a function of the global round, continues with them.
 """
 
@@ -12,15 +13,17 @@ from __future__ import annotations
 
 import json
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from flwr.app import ArrayRecord
 from lerobot.datasets.io_utils import cast_stats_to_numpy
+from safetensors import safe_open
 from safetensors.torch import load_file
 
 from zk0 import adapters
-from zk0.artifacts import ROUND_FILE
+from zk0.artifacts import ROUND_FILE, SERVER_STATE_FILE
 from zk0.config import ConfigError
 from zk0.policy import PolicyBundle, get_trainable
 
@@ -38,6 +41,8 @@ class ResumePoint:
     rounds: dict[int, dict]
     client_stats: dict[int, dict]
     best: dict | None  # {"round", "action-mse"} of the run's models/best, if it has one
+    server_optimiser: str | None = None  # the optimiser whose state the checkpoint keeps (None: none kept)
+    server_state: dict[str, np.ndarray] = field(default_factory=dict)
 
     def trainable(self, bundle: PolicyBundle) -> ArrayRecord:
         """The checkpoint's trainable tensors, under the policy's parameter names (a LoRA run's
@@ -75,7 +80,17 @@ def find_resume_point(resume_from: str) -> ResumePoint:
         for p in (checkpoint / "client_stats").glob("*.json")
         if (m := CLIENT_STATS.fullmatch(p.stem))
     }
-    return ResumePoint(run_dir, last, checkpoint, rounds, stats, best_so_far(run_dir))
+    return ResumePoint(run_dir, last, checkpoint, rounds, stats, best_so_far(run_dir), *server_state(checkpoint))
+
+
+def server_state(checkpoint: Path) -> tuple[str | None, dict[str, np.ndarray]]:
+    """The server optimiser a checkpoint's state belongs to, and the state (checkpoints written
+    before zk0 kept it have none: the optimiser then starts afresh)."""
+    path = checkpoint / SERVER_STATE_FILE
+    if not path.is_file():
+        return None, {}
+    with safe_open(path, framework="numpy") as state:
+        return state.metadata()["server-optimiser"], {key: state.get_tensor(key) for key in state.keys()}
 
 
 def best_so_far(run_dir: Path) -> dict | None:

@@ -5,7 +5,7 @@ The best model is the one with the lowest server action MSE of every evaluated r
 (the starting model) included, kept in ``models/best``: a run that starts from a pretrained
 model never hands back one that does worse on the server's evaluation set than where it began.
 
-``RoundArtifacts`` is the observer ``zk0.aggregation.ValidatingFedProx`` calls: with the client
+``RoundArtifacts`` is the observer ``zk0.aggregation.ValidatingStrategy`` calls: with the client
 replies each phase counted or lost (``record_clients``), and once a round is over, after Flower's
 ``evaluate_fn`` evaluated the global model (``round_ended``). It writes only from what it is
 given, so a simulation and a deployment leave the same files.
@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import time
 
+import numpy as np
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
 from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.policies import make_pre_post_processors
@@ -76,8 +77,15 @@ class RoundArtifacts:
             if "stats" in content:
                 self.client_stats[index] = stats_from_record(content["stats"])
 
-    def round_ended(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
-        """The round's JSON and charts, a checkpoint when the run keeps one, W&B, the progress line."""
+    def round_ended(
+        self,
+        server_round: int,
+        arrays: ArrayRecord,
+        evaluation: MetricRecord | None,
+        server_state: dict[str, np.ndarray],
+    ) -> None:
+        """The round's JSON and charts, a checkpoint (with the server optimiser's state) when the run
+        keeps one, W&B, the progress line."""
         self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         if evaluation is not None:
             self.history.add(server_round, "server-evaluate", dict(evaluation))
@@ -89,17 +97,24 @@ class RoundArtifacts:
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
         if self.run.checkpoints_in(server_round):
-            self.checkpoint(server_round, arrays, evaluation)
+            self.checkpoint(server_round, arrays, evaluation, server_state)
         if server_round == self.run.num_server_rounds and self.run.hf_repo_id:
             self.publish_best()
         self.tracker.log(server_round, self.history.round(server_round))
         if server_round:
             logger.info(self.progress(server_round))
 
-    def checkpoint(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
-        """A lerobot pretrained-model directory of the global model (staged and pushed for the Hub,
-        tagged, with ``hf-push-every-checkpoint``)."""
-        path = self.save(server_round, arrays, dict(evaluation) if evaluation else None)
+    def checkpoint(
+        self,
+        server_round: int,
+        arrays: ArrayRecord,
+        evaluation: MetricRecord | None,
+        server_state: dict[str, np.ndarray],
+    ) -> None:
+        """A lerobot pretrained-model directory of the global model and the server optimiser's state
+        (staged and pushed for the Hub, tagged, with ``hf-push-every-checkpoint``)."""
+        state = (self.run.server_optimiser, server_state)
+        path = self.save(server_round, arrays, dict(evaluation) if evaluation else None, server_state=state)
         logger.info("Round {} checkpoint: {}", server_round, path)
         if self.run.hf_repo_id and self.run.hf_push_every_checkpoint:
             metrics = dict(evaluation) if evaluation else None
@@ -121,13 +136,20 @@ class RoundArtifacts:
         self.best = candidate
         self.unsaved = (arrays, evaluation)
 
-    def save(self, server_round: int, arrays: ArrayRecord, evaluation: dict | None, name: str | None = None):
+    def save(
+        self,
+        server_round: int,
+        arrays: ArrayRecord,
+        evaluation: dict | None,
+        name: str | None = None,
+        server_state: tuple[str, dict[str, np.ndarray]] | None = None,
+    ):
         """``arrays`` as a checkpoint of ``server_round`` (under ``models/<name>``, if named)."""
         set_trainable(self.bundle, arrays)
         names = self.history.client_names
         per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(self.client_stats.items())}
         return save_checkpoint(
-            self.checkpoint_bundle(), self.history.run_dir, server_round, per_client, name, evaluation
+            self.checkpoint_bundle(), self.history.run_dir, server_round, per_client, name, evaluation, server_state
         )
 
     def entries(self) -> list[DatasetEntry]:

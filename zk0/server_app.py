@@ -1,8 +1,10 @@
-"""zk0 ServerApp: FedProx over the trainable SmolVLA parameters, server evaluation, artifacts.
+"""zk0 ServerApp: federated averaging of the trainable SmolVLA parameters, server evaluation, artifacts.
 
 The server checks the datasets, builds the global policy exactly as clients do (same base,
-same seed) on its evaluation dataset, and runs Flower's round loop with ``ValidatingFedProx``:
-only the trainable arrays travel, updates are averaged by samples trained, Flower's
+same seed) on its evaluation dataset, and runs Flower's round loop with the run's server
+optimiser (a Flower strategy, zk0.server_optimisers) inside ``ValidatingStrategy``: only the
+trainable arrays travel, updates are averaged by samples trained and stepped by the optimiser
+(whose state a resumed run gets back from its checkpoint), Flower's
 ``evaluate_fn`` (``ServerEvaluation``) evaluates the global model every ``eval-frequency``
 rounds, and ``RoundArtifacts`` (zk0.round_artifacts) writes what each round leaves.
 """
@@ -18,7 +20,7 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from loguru import logger
 
 from zk0 import app_fingerprint
-from zk0.aggregation import ValidatingFedProx, array_signature
+from zk0.aggregation import ValidatingStrategy, array_signature
 from zk0.artifacts import History, new_run_dir, write_json
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
@@ -31,6 +33,7 @@ from zk0.preflight import SIZED, check_federation
 from zk0.registry import Registry, load_registry
 from zk0.resume import ResumePoint, find_resume_point
 from zk0.round_artifacts import RoundArtifacts
+from zk0.server_optimisers import make_strategy, restore_state
 from zk0.tracking import Tracker
 from zk0.training import evaluate
 from zk0.wire import SHAPE
@@ -103,8 +106,8 @@ def preflight(run: RunConfig, registry: Registry, simulation: bool) -> LeRobotDa
 
 @app.main()
 def main(grid: Grid, context: Context) -> None:
-    """Validate the config and every local dataset, build the global model, run FedProx, write
-    artifacts every round."""
+    """Validate the config and every local dataset, build the global model, run the federation,
+    write artifacts every round."""
     setup_logging("server")
     try:
         run = from_run_config(dict(context.run_config))
@@ -144,19 +147,28 @@ def main(grid: Grid, context: Context) -> None:
     artifacts = RoundArtifacts(
         run, registry, bundle, entry, history, tracker, client_stats, done + 1, resumed.best if resumed else None
     )
-    strategy = ValidatingFedProx(
-        expected=array_signature(initial),
-        evaluates_in=run.evaluates_in,
-        observer=artifacts,
-        last_round=run.num_server_rounds,
-        proximal_mu=run.proximal_mu,
+    optimiser = make_strategy(
+        run.server_optimiser,
+        run.server_lr,
+        run.server_momentum,
         fraction_train=run.fraction_train,
         fraction_evaluate=run.fraction_evaluate,
         min_train_nodes=run.min_train_clients,
         min_evaluate_nodes=1,
         min_available_nodes=run.min_train_clients,
+    )
+    if resumed:
+        restore_state(optimiser, resumed.server_state, list(initial), resumed.server_optimiser)
+    strategy = ValidatingStrategy(
+        optimiser,
+        expected=array_signature(initial),
+        evaluates_in=run.evaluates_in,
+        observer=artifacts,
+        last_round=run.num_server_rounds,
         round_offset=done,
         wire_dtype=run.wire_dtype,
+        proximal_mu=run.proximal_mu,
+        update_clip=run.update_clip,
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own
     # machine, never at a path of the server's) and what both ends must share.
