@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -12,7 +13,9 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from lerobot.processor import PolicyProcessorPipeline
 from lerobot.processor.converters import batch_to_transition, transition_to_batch
+from safetensors.torch import load_file
 
+from zk0.bench.robust import scaled_client_app
 from zk0.config import RunConfig
 from zk0.data import open_metadata
 from zk0.policy import build_policy, get_trainable
@@ -186,3 +189,57 @@ def test_bf16_exchange_learns_like_fp32(flower_env, tmp_path):
         final[wire] = rounds[-1]["server-evaluate"]["action-mse"]
         assert final[wire] < 0.8 * rounds[0]["server-evaluate"]["action-mse"], "it learns at all"
     assert abs(final["bfloat16"] - final["float32"]) <= 0.10 * final["float32"], final
+
+
+def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_env, tmp_path):
+    """The server optimiser's state (outer Nesterov's momentum here) comes back from the checkpoint,
+    and each client's optimizer moments and data position from the state it kept at that round:
+    resumed after round 2, the run's round-4 model equals the uninterrupted run's, bit for bit."""
+    config = "num-server-rounds=4 local-steps=3 batch-size=4 checkpoint-interval=2 eval-batches=1"
+    config += " server-optimiser='nesterov'"
+    straight_out, resumed_out = tmp_path / "straight", tmp_path / "resumed"
+    log = flwr_run(flower_env, f"{config} output-dir='{straight_out}'", ONE_ACTOR)
+    (straight,) = straight_out.iterdir()
+    assert (straight / "models" / "checkpoint_round_4").is_dir(), log[-3000:]
+    # What an interruption after round 2's checkpoint leaves: the folder without round 4's checkpoint
+    # and the clients' round-4 state (round 3's files are rewritten by the resumed run).
+    interrupted = resumed_out / straight.name
+    shutil.copytree(straight, interrupted)
+    shutil.rmtree(interrupted / "models" / "checkpoint_round_4")
+    for state in interrupted.glob("clients/*/trainer_state/round_4.safetensors"):
+        state.unlink()
+    assert len(list(interrupted.glob("clients/*/trainer_state/round_2.safetensors"))) == 2
+    assert (interrupted / "models" / "checkpoint_round_2" / "server_optimiser.safetensors").is_file()
+
+    log = flwr_run(flower_env, f"{config} output-dir='{resumed_out}' resume-from='{interrupted}'", ONE_ACTOR)
+    assert (interrupted / "models" / "checkpoint_round_4").is_dir(), log[-3000:]
+    expected = load_file(straight / "models" / "checkpoint_round_4" / "model.safetensors")
+    resumed = load_file(interrupted / "models" / "checkpoint_round_4" / "model.safetensors")
+    assert set(resumed) == set(expected)
+    differ = [name for name in expected if not torch.equal(resumed[name], expected[name])]
+    assert not differ, f"{len(differ)} tensors differ, e.g. {differ[:3]}"
+    for client in ("client_0", "client_1"):
+        said = (interrupted / "clients" / client / "client.log").read_text()
+        assert "Continuing the resumed run at batch 6 with the optimizer state of round 2." in said
+
+
+def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_keeps_learning(flower_env, tmp_path):
+    """A bad client (zk0's ClientApp with its reply scaled, as ``python -m zk0.bench robust`` runs it):
+    named once per round, bounded by update-clip, and the global model still improves."""
+    out = tmp_path / "outputs"
+    app = scaled_client_app(tmp_path / "app", index=1, factor=1000.0)
+    config = f"num-server-rounds=4 local-steps=10 batch-size=8 lr=2e-3 eval-batches=1000 output-dir='{out}'"
+    log = flwr_run(flower_env, config, ONE_ACTOR, app=app)
+    runs = list(out.iterdir()) if out.exists() else []
+    assert len(runs) == 1, log[-3000:]
+    rounds = json.loads((runs[0] / "server" / "metrics_history.json").read_text())["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1, 2, 3, 4], log[-3000:]
+    server_log = (runs[0] / "server" / "server.log").read_text()
+    for r in (1, 2, 3, 4):
+        named = f"Round {r}: client 1 (synth-so100-stacking)'s update is"
+        assert server_log.count(named) == 1, f"round {r}"
+        scale = rounds[r]["clients"]["1"]["train"]["update-scale"]
+        assert 1e-3 < scale < 1e-2, "scaled to update-clip x the other's norm: about 3/1000"
+        assert rounds[r]["clients"]["0"]["train"]["update-scale"] == 1.0
+    mse = [r["server-evaluate"]["action-mse"] for r in rounds]
+    assert mse[-1] < 0.8 * mse[0], f"it learns as test_bf16_exchange_learns_like_fp32's run does: {mse}"

@@ -33,7 +33,7 @@ from loguru import logger
 
 from zk0.errors import REFUSED, Zk0Error
 from zk0.server_optimisers import optimiser_name, optimiser_state
-from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, decode, encode
+from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, KEEP_STATE, decode, encode
 
 
 class RoundObserver(Protocol):
@@ -110,6 +110,7 @@ class ValidatingStrategy(Strategy):
         expected: dict[str, tuple[tuple[int, ...], str]],
         evaluates_in: Callable[[int], bool],
         observer: RoundObserver,
+        checkpoints_in: Callable[[int], bool] = lambda _: False,
         last_round: int,
         round_offset: int = 0,
         wire_dtype: str = "float32",
@@ -120,6 +121,7 @@ class ValidatingStrategy(Strategy):
         self.expected = expected
         self.wire_dtype = wire_dtype  # the global model is kept in fp32; messages carry this dtype
         self.evaluates_in = evaluates_in
+        self.checkpoints_in = checkpoints_in  # clients keep their training state in these rounds
         self.observer = observer
         self.last_round = last_round  # of the whole run, resumed rounds included
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
@@ -162,7 +164,9 @@ class ValidatingStrategy(Strategy):
     ) -> Iterable[Message]:
         server_round += self.round_offset
         self.current = arrays
-        config = ConfigRecord({**config, "proximal-mu": self.proximal_mu})  # FedProx's key, for any optimiser
+        config = ConfigRecord(
+            {**config, "proximal-mu": self.proximal_mu, KEEP_STATE: self.checkpoints_in(server_round)}
+        )  # FedProx's key, for any optimiser; a checkpoint round's clients keep their state to resume from
         messages = list(self.inner.configure_train(server_round, arrays, config, grid))
         wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
         for msg in messages:  # the optimiser keeps the fp32 model; clients get the wire dtype

@@ -27,7 +27,7 @@ from flwr.app import ConfigRecord, Context, MetricRecord, RecordDict
 from loguru import logger
 from torch.utils.data import DataLoader
 
-from zk0 import app_fingerprint
+from zk0 import app_fingerprint, client_state
 from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_split, train_loader
 from zk0.errors import Zk0Error
@@ -37,7 +37,7 @@ from zk0.preflight import check_dataset, model_inputs
 from zk0.registry import DatasetEntry, Registry, load_registry
 from zk0.stats import stats_to_record
 from zk0.training import LocalTrainer, evaluate
-from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, SHAPE, decode, encode
+from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, KEEP_STATE, SHAPE, decode, encode
 
 # What must outlive a one-message process, in the node's Context.state.
 OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
@@ -175,24 +175,36 @@ def _check_server(session: ClientSession, config: ConfigRecord) -> None:
         )
 
 
-def _catch_up(session: ClientSession, context: Context) -> float:
+def _catch_up(session: ClientSession, context: Context, config: ConfigRecord) -> float:
     """Continue from the node's latest training state when another process trained it since.
 
     A SuperNode may run a message in a new process, and Ray may give a simulated node to another
-    actor for a round; either way the node's ``Context.state`` holds where training stopped.
-    Returns the seconds it took.
+    actor for a round; either way the node's ``Context.state`` holds where training stopped. A
+    resumed run's first round continues from the state this client kept on disk at the
+    checkpoint the server resumed from (zk0.client_state). Returns the seconds it took.
     """
-    if PROGRESS not in context.state:
-        return 0.0
-    seen = int(context.state[PROGRESS]["batches-seen"])
-    if seen == session.trainer.batches_seen:
-        return 0.0
     started = time.perf_counter()
-    optimizer = context.state.array_records.get(OPTIMIZER)
-    if optimizer is None:
-        logger.warning("Continuing at batch {} without the optimizer's moments (they were not kept).", seen)
-    session.trainer.restore(seen, optimizer)
+    if PROGRESS in context.state:
+        seen = int(context.state[PROGRESS]["batches-seen"])
+        if seen == session.trainer.batches_seen:
+            return 0.0
+        optimizer = context.state.array_records.get(OPTIMIZER)
+        if optimizer is None:
+            logger.warning("Continuing at batch {} without the optimizer's moments (they were not kept).", seen)
+        session.trainer.restore(seen, optimizer)
+    elif session.trainer.batches_seen == 0:
+        previous = int(config["server-round"]) - 1
+        if (state := client_state.kept(state_folder(session, context, config), previous)) is None:
+            return 0.0
+        logger.info("Continuing the resumed run at batch {} with the optimizer state of round {}.", state[0], previous)
+        session.trainer.restore(*state)
     return time.perf_counter() - started
+
+
+def state_folder(session: ClientSession, context: Context, config: ConfigRecord) -> Path:
+    """Where this client keeps its training state for the run: next to its log."""
+    log = client_log(dict(context.node_config), session.run, str(config["run-name"]), session.index)
+    return log.parent / "trainer_state"
 
 
 def _train(session: ClientSession, content: RecordDict, context: Context, keep_optimizer: bool) -> RecordDict:
@@ -205,6 +217,8 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
     if keep_optimizer:
         context.state[OPTIMIZER] = session.trainer.optimizer_record()
+    if config.get(KEEP_STATE):
+        client_state.keep(state_folder(session, context, config), server_round, session.trainer)
     context.state[PROGRESS] = ConfigRecord({"batches-seen": session.trainer.batches_seen})
     update = encode(trainable_tensors(session.bundle), run.wire_dtype)
     reply = RecordDict(
@@ -266,7 +280,7 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
     with logger.contextualize(party=session.party), _named(session.index, session.split.entry.name):
         _check_server(session, content["config"])
         set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
-        restore = _catch_up(session, context) if kind == "train" else 0.0
+        restore = _catch_up(session, context, content["config"]) if kind == "train" else 0.0
         reply = _train(session, content, context, keep_optimizer) if kind == "train" else _evaluate(session, content)
     timings = dict(zip(TIMINGS, (startup, build, restore, time.perf_counter() - started), strict=True))
     next(iter(reply.metric_records.values())).update(timings)

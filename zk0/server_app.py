@@ -163,6 +163,7 @@ def main(grid: Grid, context: Context) -> None:
         optimiser,
         expected=array_signature(initial),
         evaluates_in=run.evaluates_in,
+        checkpoints_in=run.checkpoints_in,
         observer=artifacts,
         last_round=run.num_server_rounds,
         round_offset=done,

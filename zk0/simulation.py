@@ -122,14 +122,17 @@ def cpu_federation(num_supernodes: int, actors: int | None = None) -> str:
     return config + (f" init-args-num-cpus={actors}" if actors else "")
 
 
-def flwr_run(env: dict[str, str], run_config: str, federation: str, timeout: float = 3600) -> str:
-    """`flwr run <project> --stream` with a run config and a federation config; returns what it printed."""
+def flwr_run(
+    env: dict[str, str], run_config: str, federation: str, timeout: float = 3600, app: Path = PROJECT_ROOT
+) -> str:
+    """`flwr run <app> --stream` (zk0 itself by default) with a run config and a federation config;
+    returns what it printed."""
     flwr = str(Path(sys.executable).with_name("flwr"))
     done = subprocess.run(
         [
             flwr,
             "run",
-            str(PROJECT_ROOT),
+            str(app),
             CONNECTION,
             "--stream",
             "--federation-config",
@@ -147,13 +150,15 @@ def flwr_run(env: dict[str, str], run_config: str, federation: str, timeout: flo
     return done.stdout + done.stderr
 
 
-def run_federation(run_config: str, clients: int, output_dir: Path, name: str) -> dict | None:
+def run_federation(
+    run_config: str, clients: int, output_dir: Path, name: str, app: Path = PROJECT_ROOT
+) -> dict | None:
     """`flwr run` on a private SuperLink with ``clients`` CPU clients; the run's metric history.
 
     For benchmarks: on failure it prints the end of Flower's log and one sentence, and returns None.
     """
     with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env:
-        log = flwr_run(env, f"{run_config} output-dir='{output_dir}'", cpu_federation(clients))
+        log = flwr_run(env, f"{run_config} output-dir='{output_dir}'", cpu_federation(clients), app=app)
     runs = sorted(output_dir.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
     if not runs or "Exit Code: " in log:
         print(log[-4000:], file=sys.stderr)

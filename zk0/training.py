@@ -11,6 +11,7 @@ per round, whichever rounds a client happens to be sampled in.
 from __future__ import annotations
 
 import time
+import zlib
 from collections.abc import Iterator
 from contextlib import nullcontext
 from dataclasses import dataclass, field
@@ -191,7 +192,15 @@ class LocalTrainer:
         self.optimizer.load_state_dict({**full, "state": state})
 
     def fit(self, steps: int, mu: float, global_step: int) -> dict[str, float]:
-        """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics."""
+        """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics.
+
+        The random numbers (SmolVLA's flow-matching noise and time) are seeded by the run's seed,
+        the dataset and ``global_step``: a round trains the same whichever process runs it, so a
+        resumed run equals an uninterrupted one. (The loader's iterator is opened before seeding:
+        opening one draws from the same generator, and a resumed client opens its first here.)"""
+        if self._batches is None:
+            self._batches = iter(self.loader)
+        torch.manual_seed(self.run.seed + global_step + zlib.crc32(self.dataset_name.encode()))
         self.fedprox.anchor_at(mu)
         set_schedule_step(self.scheduler, global_step)
         tracker = metrics_tracker(self.run.batch_size, self.split.meta.total_frames, self.split.meta.total_episodes)

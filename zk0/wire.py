@@ -17,6 +17,7 @@ from zk0.errors import Zk0Error
 EVALUATE_ROUND = "evaluate-round"  # train config: evaluate the received model (that round's) first
 EVALUATION = "evaluation"  # train reply: a ConfigRecord with that evaluation's metrics, or its "error"
 CLIENT = "client"  # every reply: a ConfigRecord naming the client ({"index": i, "dataset": name})
+KEEP_STATE = "keep-state"  # train config: a checkpoint round, so the client keeps its training state (zk0.client_state)
 SHAPE = "shape:"  # config: the global model's state/action sizes, e.g. "shape:action" = [6]
 
 
