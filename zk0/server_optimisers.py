@@ -12,8 +12,9 @@ averages the clients' steps from the same weights); an outer optimiser treats
 as named arrays (``optimiser_state`` / ``restore_state``) and kept next to each checkpoint.
 
 Flower's ``FedAdam``/``FedYogi`` defaults (``eta = 0.1``, ``tau = 1e-3``) move every weight by
-about 0.07 in round 1: far too much for a pretrained policy. zk0's defaults step each weight by
-about ``server-lr`` (1e-3) per round and set ``tau`` below the size of a fine-tuning update.
+about 0.07 in round 1: far too much for a pretrained policy. zk0 sets ``tau`` below the size of a
+fine-tuning update, so each weight moves by about ``server-lr`` per round, and defaults that to
+1e-2 (1e-3 barely moved the study's model: docs/learning.md).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from flwr.serverapp.strategy import FedAdam, FedAvg, FedAvgM, FedYogi
 from loguru import logger
 
 # server-optimiser -> its server-lr when the run config leaves it at 0
-DEFAULT_LR = {"fedavg": 1.0, "fedavgm": 1.0, "nesterov": 0.7, "fedadam": 1e-3, "fedyogi": 1e-3}
+DEFAULT_LR = {"fedavg": 1.0, "fedavgm": 1.0, "nesterov": 0.7, "fedadam": 1e-2, "fedyogi": 1e-2}
 SERVER_OPTIMISERS = tuple(DEFAULT_LR)
 ADAPTIVE_TAU = 1e-6  # FedAdam/FedYogi's epsilon: below a fine-tuning update's size, so the step is ~server-lr
 # The arrays each optimiser carries from round to round (Flower's attribute names, and zk0's).

@@ -5,11 +5,12 @@ from __future__ import annotations
 import sys
 
 from zk0.assets import ensure_all
-from zk0.bench import deployment, exchange, gpu, inputs, learning, memory, round, sim, step, study
+from zk0.bench import deployment, exchange, gpu, inputs, learning, memory, robust, round, sim, step, study
 
 BENCHMARKS = {
     "learning": learning.main,
     "study": study.main,
+    "robust": robust.main,
     "exchange": exchange.main,
     "step": step.main,
     "round": round.main,
