@@ -40,10 +40,10 @@ class RunConfig:
     local_epochs: int = 0  # deprecated alias of local_steps, 0 = unset
     batch_size: int = 8
     lr: float = 1e-4
-    proximal_mu: float = 0.01
-    server_optimiser: str = "fedavg"  # how the server steps from the averaged update (zk0.server_optimisers)
+    proximal_mu: float = 0.0
+    server_optimiser: str = "nesterov"  # how the server steps from the averaged update (zk0.server_optimisers)
     server_lr: float = 0.0  # the server optimiser's learning rate; 0 = its default
-    server_momentum: float = 0.9  # FedAvgM's and Nesterov's momentum, FedAdam's and FedYogi's beta_1
+    server_momentum: float = 0.5  # FedAvgM's and Nesterov's momentum
     update_clip: float = 3.0  # an update larger than this times the others' median is scaled down; 0 = off
     fraction_train: float = 1.0
     min_train_clients: int = 2

@@ -28,7 +28,7 @@ from flwr.serverapp.strategy import FedAdam, FedAvg, FedAvgM, FedYogi
 from loguru import logger
 
 # server-optimiser -> its server-lr when the run config leaves it at 0
-DEFAULT_LR = {"fedavg": 1.0, "fedavgm": 1.0, "nesterov": 0.7, "fedadam": 1e-2, "fedyogi": 1e-2}
+DEFAULT_LR = {"fedavg": 1.0, "fedavgm": 1.0, "nesterov": 1.0, "fedadam": 1e-2, "fedyogi": 1e-2}
 SERVER_OPTIMISERS = tuple(DEFAULT_LR)
 ADAPTIVE_TAU = 1e-6  # FedAdam/FedYogi's epsilon: below a fine-tuning update's size, so the step is ~server-lr
 # The arrays each optimiser carries from round to round (Flower's attribute names, and zk0's).
@@ -45,7 +45,7 @@ class FedNesterov(FedAvg):
     pseudo-gradient. With ``lr = 1`` and ``momentum = 0`` it is FedAvg.
     """
 
-    def __init__(self, *, server_learning_rate: float = 0.7, server_momentum: float = 0.9, **kwargs) -> None:
+    def __init__(self, *, server_learning_rate: float = 1.0, server_momentum: float = 0.5, **kwargs) -> None:
         super().__init__(**kwargs)
         self.server_learning_rate = server_learning_rate
         self.server_momentum = server_momentum
@@ -84,7 +84,7 @@ class FedNesterov(FedAvg):
 
 def make_strategy(name: str, lr: float, momentum: float, **flower_kwargs) -> FedAvg:
     """The Flower strategy for ``server-optimiser = name`` (``lr`` 0: its default; ``momentum`` is
-    FedAvgM's and Nesterov's momentum, FedAdam's and FedYogi's beta_1)."""
+    FedAvgM's and Nesterov's; FedAdam and FedYogi keep Flower's beta_1 = 0.9, beta_2 = 0.99)."""
     lr = lr or DEFAULT_LR[name]
     if name == "fedavg":
         return FedAvg(**flower_kwargs)
@@ -93,7 +93,7 @@ def make_strategy(name: str, lr: float, momentum: float, **flower_kwargs) -> Fed
     if name == "nesterov":
         return FedNesterov(server_learning_rate=lr, server_momentum=momentum, **flower_kwargs)
     adaptive = {"fedadam": FedAdam, "fedyogi": FedYogi}[name]
-    return adaptive(eta=lr, beta_1=momentum, tau=ADAPTIVE_TAU, **flower_kwargs)
+    return adaptive(eta=lr, tau=ADAPTIVE_TAU, **flower_kwargs)
 
 
 def optimiser_name(strategy: FedAvg) -> str:

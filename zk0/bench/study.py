@@ -349,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         type=positive(float),
         help="the federation's learning rate (default: --lr, as the baselines')",
     )
-    parser.add_argument("--proximal-mu", type=positive(float), default=RunConfig.proximal_mu, help="FedProx's mu")
+    parser.add_argument("--proximal-mu", type=positive(float), default=0.01, help="FedProx's mu")
     parser.add_argument(
         "--federations",
         nargs="+",
