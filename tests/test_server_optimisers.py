@@ -143,7 +143,10 @@ def test_two_clients_bound_each_other():
             "Run-config key 'server-optimiser' got 'adam'; expected one of "
             "['fedavg', 'fedavgm', 'nesterov', 'fedadam', 'fedyogi'].",
         ),
-        ({"server-lr": 0.5}, "Run-config key 'server-lr' got 0.5, and server-optimiser='fedavg' takes the average"),
+        (
+            {"server-optimiser": "fedavg", "server-lr": 0.5},
+            "Run-config key 'server-lr' got 0.5, and server-optimiser='fedavg' takes the average",
+        ),
         ({"server-momentum": 1.0}, "Run-config key 'server-momentum' got 1.0; expected a value >= 0 and <= 0.99."),
         ({"update-clip": 0.5}, "Run-config key 'update-clip' got 0.5; expected 0 (off) or a factor >= 1"),
     ],
