@@ -6,9 +6,11 @@ between messages, and a SuperNode that dies mid-run."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -142,3 +144,46 @@ def test_a_supernode_killed_during_round_2_is_named_and_the_run_completes(federa
     while workers_under(federation.root / "robot-2") and time.monotonic() < deadline:
         time.sleep(0.5)
     assert not workers_under(federation.root / "robot-2"), "a worker exits when its SuperNode is gone"
+
+
+def test_supernodes_without_cpus_divide_the_machine_between_them(tmp_path, monkeypatch):
+    """What a default SuperNode gives the processes it starts: its share of the machine's CPUs,
+    recomputed before each message from the SuperNodes alive, and PyTorch's threads set to it."""
+    import torch
+
+    from zk0 import machine
+    from zk0.client import share_this_machine
+    from zk0.deploy import thread_env
+
+    folder, cpus = tmp_path / "supernodes", machine.affinity()
+    first = thread_env(None, folder)  # the first SuperNode on this machine has it all
+    assert first == {machine.SHARED: str(folder), "OMP_NUM_THREADS": str(cpus), "MKL_NUM_THREADS": str(cpus)}
+    machine.register(folder)  # this test process plays the first SuperNode
+    assert thread_env(None, folder)["OMP_NUM_THREADS"] == str(max(1, cpus // 2)), "a second one starts with half"
+    assert thread_env(1, folder) == {machine.FIXED: "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+    monkeypatch.delenv(machine.FIXED, raising=False)
+    monkeypatch.setenv(machine.SHARED, str(folder))
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    threads = torch.get_num_threads()
+    try:
+        machine.register(folder, other.pid)  # the second SuperNode starts
+        assert machine.cpus_now() == max(1, cpus // 2)
+        share_this_machine()
+        assert torch.get_num_threads() == max(1, cpus // 2)
+        other.kill()
+        other.wait()
+        assert machine.cpus_now() == cpus, "when it stops, the first gets the machine back"
+        assert sorted(p.name for p in folder.iterdir()) == [str(os.getpid())], "the stopped one's entry goes"
+        monkeypatch.setenv(machine.FIXED, "1")
+        assert machine.cpus_now() == 1, "--cpus fixes the share"
+    finally:
+        other.kill()
+        torch.set_num_threads(threads)
+
+
+def test_supernode_dry_run_shows_the_thread_settings_it_starts_with(tmp_path):
+    base = [tool("zk0"), "supernode", "--superlink", "127.0.0.1:1", "--insecure", "--dataset", "synth-so100-pickplace"]
+    for extra, expected in ((["--cpus", "1"], "ZK0_CPUS=1 OMP_NUM_THREADS=1"), ([], "ZK0_SUPERNODES=")):
+        done = subprocess.run([*base, *extra, "--dry-run"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert done.returncode == 0 and done.stdout.startswith(expected), done.stdout + done.stderr

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from flwr.common.config import flatten_dict, parse_config_args
 
-from zk0 import deploy
+from zk0 import deploy, machine
 from zk0.assets import TINY_BACKBONE, AssetError, default_cache_root, ensure_backbone, ensure_dataset
 from zk0.assets.datasets import SPECS
 from zk0.certs import make_federation_certs
@@ -120,13 +120,16 @@ def _supernode(args: argparse.Namespace) -> int:
     output_dir = writable_folder(Path(args.output_dir).expanduser().resolve(), "--output-dir")
     config = node_config(args.dataset, output_dir, not args.no_warm_worker)
     command = supernode_command(args.superlink, certs, args.key, config, args.runtime_port)
-    env = {**thread_env(args.cpus or cpus), **SUPEREXEC_POLL}
+    supernodes = machine.registry_folder()
+    env = {**thread_env(args.cpus, supernodes), **SUPEREXEC_POLL}
     if args.dry_run:
         print(" ".join(f"{k}={v}" for k, v in env.items()), shlex.join(command))
         return 0
     from zk0.preflight import ModelInputs, check_dataset  # torch and lerobot: only when starting for real
 
     check_dataset(entry, ModelInputs(tuple(registry.model_cameras())), eval_episodes=None)  # before connecting
+    if args.cpus is None:
+        machine.register(supernodes)  # this process becomes the SuperNode (exec keeps its pid)
     deploy.run(command, env)
     return 0
 

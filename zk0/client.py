@@ -27,7 +27,7 @@ from flwr.app import ConfigRecord, Context, MetricRecord, RecordDict
 from loguru import logger
 from torch.utils.data import DataLoader
 
-from zk0 import app_fingerprint, client_state
+from zk0 import app_fingerprint, client_state, machine
 from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_split, train_loader
 from zk0.errors import Zk0Error
@@ -266,6 +266,14 @@ def identity(session: ClientSession) -> ConfigRecord:
     return ConfigRecord({"index": session.index, "dataset": session.split.entry.name})
 
 
+def share_this_machine() -> None:
+    """On a SuperNode, PyTorch's threads for this message: the SuperNode's share of the machine
+    (``--cpus``, or the CPUs divided among the SuperNodes running now: zk0.machine)."""
+    cpus = machine.cpus_now()
+    if cpus is not None and cpus != torch.get_num_threads():
+        torch.set_num_threads(cpus)
+
+
 def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: bool = True) -> RecordDict:
     """Answer one ``train`` or ``evaluate`` message for this node; ``context.state`` is updated in place.
 
@@ -276,6 +284,7 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
     started = time.perf_counter()
     startup = time.time() - psutil.Process().create_time() if _FRESH_PROCESS else 0.0
     _FRESH_PROCESS = False
+    share_this_machine()
     session, build = session_for(context, content["config"])
     with logger.contextualize(party=session.party), _named(session.index, session.split.entry.name):
         _check_server(session, content["config"])

@@ -10,7 +10,6 @@ host, plus the registry's task text.
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from functools import cache
 
@@ -26,6 +25,7 @@ from lerobot.datasets.utils import BackwardCompatibilityError
 from loguru import logger
 from torch.utils.data import DataLoader
 
+from zk0 import machine
 from zk0.assets import default_cache_root
 from zk0.config import RunConfig
 from zk0.errors import Zk0Error
@@ -129,8 +129,8 @@ MAX_WORKERS = 8
 
 
 def available_cpus() -> float:
-    """CPUs this client may use: its Ray share in simulation, ``zk0 supernode --cpus`` (``ZK0_CPUS``)
-    on a SuperNode, else the process's CPU affinity."""
+    """CPUs this client may use: its Ray share in simulation, its SuperNode's share of the machine
+    (``--cpus``, or divided among the SuperNodes running: zk0.machine), else the process's CPU affinity."""
     try:
         import ray
 
@@ -138,9 +138,8 @@ def available_cpus() -> float:
             return float(ray.get_runtime_context().get_assigned_resources().get("CPU", 1.0))
     except (ImportError, RuntimeError):
         pass
-    if os.environ.get("ZK0_CPUS", "").isdigit():
-        return float(os.environ["ZK0_CPUS"])
-    return float(len(os.sched_getaffinity(0)))
+    on_supernode = machine.cpus_now()
+    return float(on_supernode if on_supernode is not None else machine.affinity())
 
 
 def loader_workers(run: RunConfig) -> int:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from loguru import logger
 
+from zk0 import machine
 from zk0.errors import Zk0Error
 
 INSECURE_WARNING = (
@@ -82,15 +83,23 @@ def supernode_command(
     return command
 
 
-def thread_env(cpus: int) -> dict[str, str]:
+def thread_env(cpus: int | None, registry: Path) -> dict[str, str]:
     """Thread limits for everything a SuperNode starts (ClientApp processes, the warm worker).
 
     Ray sets these for simulated clients; nothing does on a SuperNode, and two SuperNodes on one
-    machine, each using every core, made PyTorch's steps 22x slower. ``ZK0_CPUS`` also sizes the
-    DataLoader workers (``num-workers = -1``).
+    machine, each using every core, made PyTorch's steps 33x slower. With ``cpus`` (``--cpus``)
+    the share is fixed (``ZK0_CPUS``); without, the SuperNode registers in ``registry``
+    (``zk0 supernode`` does, before it becomes the SuperNode) and its client takes its share of
+    the machine before every message (zk0.machine). The share also sizes
+    the DataLoader workers (``num-workers = -1``).
     """
-    value = str(cpus)
-    return {"ZK0_CPUS": value, "OMP_NUM_THREADS": value, "MKL_NUM_THREADS": value}
+    if cpus is None:  # the SuperNode about to start counts too
+        cpus = machine.affinity() // (machine.alive(registry) + 1)
+        limits = {machine.SHARED: str(registry)}
+    else:
+        limits = {machine.FIXED: str(cpus)}
+    value = str(max(1, cpus))  # at start; the client sets PyTorch's threads again per message
+    return {**limits, "OMP_NUM_THREADS": value, "MKL_NUM_THREADS": value}
 
 
 # Flower's SuperExec looks for a new ClientApp task every second by default; every message waits

@@ -8,10 +8,13 @@ their ratio over the steady rounds (round 1 also builds every client), and for t
 where a client's message time goes, from the timings every reply carries: the ClientApp
 process's start and imports, the client build, restoring training state, the local steps or the
 evaluation, and handing the message to the warm worker and back. The fixed cost per client and
-round is everything that is not local steps or evaluation.
+round is everything that is not local steps or evaluation. ``--supernode-defaults`` also runs the
+deployment with ``zk0 supernode``'s default CPU share (no ``--cpus``: the SuperNodes divide the
+machine, zk0.machine), next to the ``--cpus-per-node`` one.
 
     python -m zk0.bench deployment [--model full-size] [--rounds 3] [--local-steps 30] [--clients 2]
-        [--batch-size 8] [--cpus-per-node N] [--peft lora] [--no-simulation] [--json out.json]
+        [--batch-size 8] [--cpus-per-node N] [--supernode-defaults] [--peft lora] [--no-simulation]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -41,12 +44,13 @@ def run_config(args: argparse.Namespace) -> str:
     )
 
 
-def deployment_history(args: argparse.Namespace, root: Path) -> dict | None:
-    """One run on a loopback Deployment Engine; its metric history, or None (with the log) on failure."""
+def deployment_history(args: argparse.Namespace, root: Path, cpus: int | None) -> dict | None:
+    """One run on a loopback Deployment Engine, each SuperNode with ``--cpus cpus`` (None: its default);
+    its metric history, or None (with the log) on failure."""
     datasets = [entry.name for entry in load_registry().clients[: args.clients]]
     supernodes = {f"robot-{i}": name for i, name in enumerate(datasets)}
     out = root / "server-outputs"
-    with loopback_federation(root, supernodes, cpus=args.cpus_per_node) as fed:
+    with loopback_federation(root, supernodes, cpus=cpus) as fed:
         done = fed.run_app(f"{run_config(args)} output-dir='{out}'")
     runs = sorted(out.glob("*/server/metrics_history.json"))
     if not runs or "Exit Code: " in done.stdout:
@@ -118,6 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--peft", choices=["none", "lora"], default="none", help="lora: LoRA adapters travel (run-config peft)"
     )
+    parser.add_argument(
+        "--supernode-defaults", action="store_true", help="also run the SuperNodes without --cpus (their default share)"
+    )
     parser.add_argument("--repeats", type=int, default=1, help="simulation/deployment pairs, interleaved")
     parser.add_argument("--no-simulation", action="store_true", help="deployment only (no Ray on this machine)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' folders (printed) for their logs")
@@ -128,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cpus_per_node is None:
         args.cpus_per_node = max(1, len(os.sched_getaffinity(0)) // args.clients)
 
-    runs: dict[str, list[dict]] = {"simulation": [], "deployment": []}
+    runs: dict[str, list[dict]] = {"simulation": [], "deployment": [], "deployment-defaults": []}
     with tempfile.TemporaryDirectory(prefix="zk0-bench-deployment-", delete=not args.keep) as tmp:
         for repeat in range(args.repeats):
             if not args.no_simulation:
@@ -137,10 +144,15 @@ def main(argv: list[str] | None = None) -> int:
                 if history is None:
                     return 1
                 runs["simulation"].append(history)
-            history = deployment_history(args, Path(tmp) / f"deployment-{repeat}")
+            history = deployment_history(args, Path(tmp) / f"deployment-{repeat}", args.cpus_per_node)
             if history is None:
                 return 1
             runs["deployment"].append(history)
+            if args.supernode_defaults:
+                history = deployment_history(args, Path(tmp) / f"defaults-{repeat}", None)
+                if history is None:
+                    return 1
+                runs["deployment-defaults"].append(history)
         if args.keep:
             print(f"runs kept in {tmp}")
 
@@ -153,6 +165,9 @@ def main(argv: list[str] | None = None) -> int:
             "round-wall-s": walls,
             "steady-round-s": statistics.mean(w for ws in walls for w in ws[1:]),
             "fixed-cost-per-round-s": statistics.mean(fixed_cost(h, args.local_steps) for h in histories),
+            "step-s": statistics.mean(
+                c["train"]["step-time"] for h in histories for r in h["rounds"][2:] for c in r["clients"].values()
+            ),
             "local-steps-s": statistics.mean(
                 c["train"]["step-time"] * args.local_steps
                 for h in histories
@@ -166,17 +181,19 @@ def main(argv: list[str] | None = None) -> int:
         f"model {args.model} (peft {args.peft}), {args.clients} clients, {args.rounds} rounds x {args.local_steps} steps, "
         f"batch {args.batch_size}, {args.cpus_per_node} CPU(s) per SuperNode"
     )
-    for mode in ("simulation", "deployment"):
+    for mode in ("simulation", "deployment", "deployment-defaults"):
         if mode in figures:
             f = figures[mode]
             walls = " ".join(f"{w:.2f}" for w in f["round-wall-s"][-1])
             print(
-                f"{mode:>10}: rounds {walls} s; steady {f['steady-round-s']:.2f} s/round, of which local steps "
-                f"{f['local-steps-s']:.2f} s and fixed cost {f['fixed-cost-per-round-s']:.2f} s"
+                f"{mode:>19}: rounds {walls} s; steady {f['steady-round-s']:.2f} s/round, of which local steps "
+                f"{f['local-steps-s']:.2f} s ({f['step-s']:.3f} s/step) and fixed cost {f['fixed-cost-per-round-s']:.2f} s"
             )
     if "simulation" in figures:
-        figures["ratio"] = figures["deployment"]["steady-round-s"] / figures["simulation"]["steady-round-s"]
-        print(f"deployment / simulation, steady rounds: {figures['ratio']:.2f}x")
+        for mode in ("deployment", "deployment-defaults"):
+            if mode in figures:
+                figures[f"ratio-{mode}"] = figures[mode]["steady-round-s"] / figures["simulation"]["steady-round-s"]
+                print(f"{mode} / simulation, steady rounds: {figures[f'ratio-{mode}']:.2f}x")
     d = figures["deployment"]
     print(f"deployment overhead: {100 * d['fixed-cost-per-round-s'] / d['steady-round-s']:.1f}% of a steady round")
     for phase, parts in d["messages"].items():
