@@ -69,6 +69,12 @@ def server_mse(history: dict) -> list[float]:
     return [r["server-evaluate"]["action-mse"] for r in history["rounds"] if r.get("server-evaluate")]
 
 
+def bad_scales(history: dict, bad: int) -> list[float]:
+    """What the server scaled the bad client's update by in each round (none in the run without it)."""
+    rounds = [r["clients"].get(str(bad), {}).get("train", {}) for r in history["rounds"][1:]]
+    return [train["update-scale"] for train in rounds if "update-scale" in train]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench robust", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=positive(int), default=8)
@@ -97,8 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         history = run_federation(config, clients, out / label, f"bench robust: {label}", app=app)
         if history is None:
             return 1
-        scales = [r["clients"][str(bad)]["train"].get("update-scale") for r in history["rounds"][1:]]
-        results[label] = {"server-action-mse": server_mse(history), "bad-client-update-scale": scales}
+        results[label] = {"server-action-mse": server_mse(history), "bad-client-update-scale": bad_scales(history, bad)}
         print(f"{label:<10} server action MSE per round: {', '.join(f'{m:.4g}' for m in server_mse(history))}")
     ratio = results["clipped"]["server-action-mse"][-1] / results["without"]["server-action-mse"][-1]
     print(
