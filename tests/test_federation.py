@@ -225,7 +225,7 @@ def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_e
 
 def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_keeps_learning(flower_env, tmp_path):
     """A bad client (zk0's ClientApp with its reply scaled, as ``python -m zk0.bench robust`` runs it):
-    named once per round, bounded by update-clip, and the global model still improves."""
+    named once per round, scaled down to the other's size, and the global model still improves."""
     out = tmp_path / "outputs"
     app = scaled_client_app(tmp_path / "app", index=1, factor=1000.0)
     config = f"num-server-rounds=4 local-steps=10 batch-size=8 lr=2e-3 eval-batches=1000 output-dir='{out}'"
@@ -239,7 +239,7 @@ def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_k
         named = f"Round {r}: client 1 (synth-so100-stacking)'s update is"
         assert server_log.count(named) == 1, f"round {r}"
         scale = rounds[r]["clients"]["1"]["train"]["update-scale"]
-        assert 1e-3 < scale < 1e-2, "scaled to update-clip x the other's norm: about 3/1000"
+        assert 5e-4 < scale < 2e-3, "scaled to the other's norm: about 1/1000"
         assert rounds[r]["clients"]["0"]["train"]["update-scale"] == 1.0
     mse = [r["server-evaluate"]["action-mse"] for r in rounds]
     assert mse[-1] < 0.8 * mse[0], f"it learns as test_bf16_exchange_learns_like_fp32's run does: {mse}"

@@ -4,7 +4,7 @@
 run chose: zk0.server_optimisers) and lets it sample, average and step as it does. Around it,
 it adds what a federation of robot owners needs: replies whose arrays are non-finite or do
 not match the global model's names/shapes/dtypes are rejected and logged, not averaged; an
-update far larger than the others' is scaled down to ``update-clip`` times their median
+update more than ``update-clip`` times the others' median size is scaled down to that median
 (one client's broken normalisation, bug or scaled update cannot wreck the model); FedProx's
 ``proximal-mu`` goes into every train config, whatever the optimiser; federated evaluation runs
 every ``eval-frequency`` rounds; a resumed run keeps its round numbers; and each client's own
@@ -126,7 +126,7 @@ class ValidatingStrategy(Strategy):
         self.last_round = last_round  # of the whole run, resumed rounds included
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
         self.proximal_mu = proximal_mu
-        self.update_clip = update_clip  # an update's norm is bounded by this times the others' median; 0 = off
+        self.update_clip = update_clip  # an update above this times the others' median norm is scaled to it; 0 = off
         self.current: ArrayRecord | None = None  # the global model this round's updates start from
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
@@ -257,25 +257,25 @@ class ValidatingStrategy(Strategy):
         return arrays, metrics
 
     def bound_updates(self, server_round: int, valid: list[Message]) -> None:
-        """Scale down every update whose size (L2 norm of its change to the global model) is above
-        ``update-clip`` times the median of the other updates' sizes, naming the client; each
-        reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1: untouched)."""
+        """Scale every update whose size (L2 norm of its change to the global model) is above
+        ``update-clip`` times the median of the other updates' sizes down to that median, naming
+        the client: past the clip an update is not trusted, so it counts as a typical one, no more.
+        Each reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1: untouched)."""
         key = self.inner.arrayrecord_key
         norms = [update_norm(msg.content[key], self.current) for msg in valid]
         for i, msg in enumerate(valid):
-            others = norms[:i] + norms[i + 1 :]
-            limit = self.update_clip * statistics.median(others) if others and self.update_clip else 0.0
-            scale = limit / norms[i] if 0 < limit < norms[i] else 1.0
+            typical = statistics.median(norms[:i] + norms[i + 1 :]) if len(norms) > 1 else 0.0
+            scale = typical / norms[i] if self.update_clip and 0 < typical * self.update_clip < norms[i] else 1.0
             if scale < 1:
                 msg.content[key] = scaled_update(msg.content[key], self.current, scale)
                 logger.warning(
-                    "Round {}: {}'s update is {:.3g}x the median of the others' ({:.4g} against {:.4g}); "
-                    "scaled down to update-clip={:g}x.",
+                    "Round {}: {}'s update is {:.3g}x the median of the others' ({:.4g} against {:.4g}), above "
+                    "update-clip={:g}; scaled down to that median.",
                     server_round,
                     self._who(msg),
-                    norms[i] * self.update_clip / limit,
+                    norms[i] / typical,
                     norms[i],
-                    limit / self.update_clip,
+                    typical,
                     self.update_clip,
                 )
             (metrics,) = msg.content.metric_records.values()

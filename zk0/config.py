@@ -44,7 +44,7 @@ class RunConfig:
     server_optimiser: str = "nesterov"  # how the server steps from the averaged update (zk0.server_optimisers)
     server_lr: float = 0.0  # the server optimiser's learning rate; 0 = its default
     server_momentum: float = 0.5  # FedAvgM's and Nesterov's momentum
-    update_clip: float = 3.0  # an update larger than this times the others' median is scaled down; 0 = off
+    update_clip: float = 3.0  # an update above this times the others' median is scaled to it; 0 = off
     fraction_train: float = 1.0
     min_train_clients: int = 2
     fraction_evaluate: float = 1.0
@@ -208,7 +208,7 @@ def _check_server_optimiser(cfg: RunConfig) -> None:
     if 0 < cfg.update_clip < 1 or cfg.update_clip < 0:
         raise ConfigError(
             f"Run-config key 'update-clip' got {cfg.update_clip!r}; expected 0 (off) or a factor >= 1 "
-            "(an update larger than that many times the others' median is scaled down to it)."
+            "(an update larger than that many times the others' median is scaled down to the median)."
         )
 
 
