@@ -125,6 +125,7 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     for repo_id in ["zk0/synth_so100_pickplace", "zk0/synth_so100_stacking", "zk0/synth_so100_eval"]:
         assert repo_id in card
     assert "--policy.path=zk0-tests/federated-smolvla" in card
+    assert "| server optimiser | nesterov (server-lr 1.0, momentum 0.5) |" in card, "the defaults, as the card says them"
     assert (staged / "policy_loss.png").is_file()
 
     # The same checkpoint is a valid starting point for a new federation (`model=<dir>`).

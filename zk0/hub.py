@@ -19,6 +19,7 @@ from loguru import logger
 
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.registry import DatasetEntry
+from zk0.server_optimisers import DEFAULT_LR
 
 CARD = """---
 library_name: lerobot
@@ -34,8 +35,8 @@ datasets:
 A SmolVLA policy fine-tuned with **federated learning** ([zk0](https://github.com/ivelin/zk0),
 [Flower](https://flower.ai) + [LeRobot](https://github.com/huggingface/lerobot)) across
 {num_clients} SO-100/SO-101 robot datasets whose owners never shared their data. Each client
-trained locally with FedProx (mu = {mu}); the server averaged the trainable parameters
-(FedAvg weighted by samples) for {rounds} rounds.
+trained locally (FedProx mu = {mu}); the server averaged the trainable parameters (weighted
+by samples) and stepped from the average with {server_optimiser}, for {rounds} rounds.
 
 ## Training
 
@@ -45,6 +46,7 @@ trained locally with FedProx (mu = {mu}); the server averaged the trainable para
 | rounds x local steps | {rounds} x {local_steps} |
 | batch size / learning rate | {batch_size} / {lr} |
 | FedProx mu | {mu} |
+| server optimiser | {server_optimiser} |
 | clients | {num_clients} |
 | checkpoint | {checkpoint} |
 
@@ -83,6 +85,15 @@ Name your cameras after the model's inputs (`camera1`, `camera2`, ...) or pass l
 """
 
 
+def server_optimiser(run: RunConfig) -> str:
+    """``nesterov (server-lr 1.0, momentum 0.5)``: how the card says the server stepped."""
+    if run.server_optimiser == "fedavg":
+        return "fedavg (the average as it is)"
+    lr = run.server_lr or DEFAULT_LR[run.server_optimiser]
+    momentum = f", momentum {run.server_momentum}" if run.server_optimiser in ("fedavgm", "nesterov") else ""
+    return f"{run.server_optimiser} (server-lr {lr}{momentum})"
+
+
 def model_card(
     run: RunConfig, repo_id: str, entries: list[DatasetEntry], server_round: int, final: dict | None, best: bool
 ) -> str:
@@ -102,6 +113,7 @@ def model_card(
         model_name=repo_id.split("/")[-1],
         num_clients=sum(e.role == "client" for e in entries),
         mu=run.proximal_mu,
+        server_optimiser=server_optimiser(run),
         rounds=run.num_server_rounds,
         local_steps=run.local_steps,
         batch_size=run.batch_size,
