@@ -157,6 +157,11 @@ class LocalTrainer:
         meta, bundle = self.split.meta, self.bundle
         return bundle.preprocessor(prepare_batch(batch, meta.camera_keys, self.split.entry.task, bundle.device))
 
+    def _open_batches(self) -> None:
+        """Open the data iterator if it is not open (opening one draws from PyTorch's generator)."""
+        if self._batches is None:
+            self._batches = iter(self.loader)
+
     def _next_batch(self) -> dict:
         if self._batches is None:
             self._batches = iter(self.loader)
@@ -198,8 +203,7 @@ class LocalTrainer:
         the dataset and ``global_step``: a round trains the same whichever process runs it, so a
         resumed run equals an uninterrupted one. (The loader's iterator is opened before seeding:
         opening one draws from the same generator, and a resumed client opens its first here.)"""
-        if self._batches is None:
-            self._batches = iter(self.loader)
+        self._open_batches()
         torch.manual_seed(self.run.seed + global_step + zlib.crc32(self.dataset_name.encode()))
         self.fedprox.anchor_at(mu)
         set_schedule_step(self.scheduler, global_step)
@@ -271,6 +275,12 @@ class PooledTrainer(LocalTrainer):
         name = self._source.dataset_name
         self.samples_from[name] = self.samples_from.get(name, 0) + len(batch["action"])
         return batch
+
+    def _open_batches(self) -> None:
+        """The clients' iterators (the pooled trainer has none of its own: opening the first
+        client's loader here would move that client's data order on by an epoch)."""
+        for source in self.sources:
+            source._open_batches()
 
     def _prepare(self, batch: dict) -> dict:
         return self._source._prepare(batch)
