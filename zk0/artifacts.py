@@ -2,6 +2,7 @@
 
 Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
 
+    report.html                    the run on one page, opened from disk (zk0.report)
     server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
     server/success_rate.png, lifted_rate.png, videos/round_<N>.mp4   with closed-loop evaluation (zk0.sim)
     clients/client_<i>/client.log (written by the client), round_<N>.json
@@ -98,13 +99,16 @@ class History:
             for index, metrics in record["clients"].items():
                 write_json(client_dir(self.run_dir, int(index)) / f"round_{number}.json", metrics)
         self._late.clear()
-        history = {"clients": self.participants(), "rounds": [self.rounds[r] for r in sorted(self.rounds)]}
-        write_json(self.run_dir / "server" / "metrics_history.json", history)
+        write_json(self.run_dir / "server" / "metrics_history.json", self.snapshot())
         for metric, filename in CHARTS.items():
             self.chart(metric, self.run_dir / "server" / filename)
         for metric, filename in SIM_CHARTS.items():
             if any(metric in record.get("server-evaluate", {}) for record in self.rounds.values()):
                 self.chart(metric, self.run_dir / "server" / filename)
+
+    def snapshot(self) -> dict:
+        """The whole history as ``metrics_history.json`` holds it: participants and every round."""
+        return {"clients": self.participants(), "rounds": [self.rounds[r] for r in sorted(self.rounds)]}
 
     def participants(self) -> dict[str, str]:
         """Short index -> dataset name of every client that has replied so far."""

@@ -1,0 +1,187 @@
+"""report.html: its numbers are metrics_history.json's, it stands alone, and Chromium renders it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from zk0.artifacts import History
+from zk0.report import REPORT_FILE, write_report
+
+REFUSAL = "Client 2 (c<&>): Dataset 'c<&>' records no camera."
+
+
+class Tables(HTMLParser):
+    """Each table's rows (cells as (text, data-value)), image sources, and every URL the page loads."""
+
+    def __init__(self):
+        super().__init__()
+        self.tables, self.images, self.loads, self.text = {}, [], [], []
+        self._table = self._row = self._cell = None
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "table":
+            self._table = self.tables.setdefault(attrs.get("id"), [])
+        elif tag == "tr" and self._table is not None:
+            self._row = []
+            self._table.append(self._row)
+        elif tag in ("td", "th") and self._row is not None:
+            self._cell = ["", attrs.get("data-value")]
+            self._row.append(self._cell)
+        if tag == "img":
+            self.images.append(attrs["src"])
+        for key in ("src", "href"):
+            if key in attrs and tag != "img":
+                self.loads.append(attrs[key])
+
+    def handle_endtag(self, tag):
+        if tag == "table":
+            self._table = None
+        elif tag in ("td", "th"):
+            self._cell = None
+
+    def handle_data(self, data):
+        self.text.append(data)
+        if self._cell is not None:
+            self._cell[0] += data.strip()
+
+
+def a_run(run_dir: Path) -> tuple[dict, dict]:
+    """Three rounds written by zk0's own History (JSON and charts), one client refused in round 2."""
+    history = History(run_dir, {0: "a", 1: "b", 2: "c<&>"}, {})
+    history.add(0, "server-evaluate", {"policy-loss": 1.7, "action-mse": 384.15643})
+    history.add(0, "wall-s", 1.2)
+    history.write_round(0)
+    for number, mse in ((1, 300.123456), (2, 250.5)):
+        for index in (0, 1):
+            history.add_client(number, "train", index, {"train-loss": 1.0 / number + index, "num-examples": 16})
+            history.add_client(number, "evaluate", index, {"action-mse": mse + index, "num-examples": 32})
+        history.add(number, "aggregate-train", {"train-loss": 1.0 / number + 0.5})
+        history.add(number, "aggregate-evaluate", {"action-mse": mse + 0.5})
+        history.add(number, "server-evaluate", {"policy-loss": 1.5 / number, "action-mse": mse})
+        history.add(number, "wall-s", 10.0 * number)
+        history.write_round(number)
+    history.add_client(2, "train", 2, {"error": REFUSAL})
+    history.write_round(2)
+    config = {"num-server-rounds": 3, "server-optimiser": "nesterov", "output-dir": str(run_dir.parent)}
+    return json.loads((run_dir / "server" / "metrics_history.json").read_text()), config
+
+
+def test_the_reports_numbers_are_the_histories(tmp_path):
+    run_dir = tmp_path / "2026-11-30_12-00-00"
+    history, config = a_run(run_dir)
+    best = {"round": 2, "action-mse": 250.5}
+    page = Tables()
+    page.feed(write_report(run_dir, history, config, best, 3).read_text())
+
+    header, *rows = page.tables["rounds"]
+    assert [c[0] for c in header][:3] == ["round", "clients trained", "refused"]
+    columns = [c[0] for c in header]
+    for row, record in zip(rows, history["rounds"], strict=True):
+        cells = dict(zip(columns, row, strict=True))
+        expected = {
+            "round": record["round"],
+            "train loss": record.get("aggregate-train", {}).get("train-loss"),
+            "clients' action MSE": record.get("aggregate-evaluate", {}).get("action-mse"),
+            "server action MSE": record["server-evaluate"]["action-mse"],
+            "server policy loss": record["server-evaluate"]["policy-loss"],
+            "seconds since start": record["wall-s"],
+        }
+        for column, value in expected.items():
+            text, exact = cells[column]
+            if value is None:
+                assert (text, exact) == ("-", None), column
+            else:
+                assert float(exact) == value and text == (str(value) if isinstance(value, int) else f"{value:.4g}")
+    assert [r[2][0] for r in rows] == ["0", "0", "1"], "round 2's refusal is counted"
+    assert "success rate" not in columns, "a column no round has is left out"
+
+    clients = {row[1][0]: row for row in page.tables["clients"][1:]}
+    assert set(clients) == {"a", "b", "c<&>"}, "names are escaped in the HTML and read back as given"
+    assert float(clients["a"][3][1]) == 32 and float(clients["b"][4][1]) == 1.5  # samples; last train loss
+    assert clients["c<&>"][6][0] == "1"
+    assert any(REFUSAL in t for t in page.text), "the refusal's own sentence is shown"
+    assert dict((k[0], v[0]) for k, v in page.tables["config"])["server-optimiser"] == "nesterov"
+
+    assert len(page.images) == 2 and all(src.startswith("data:image/png;base64,") for src in page.images)
+    assert page.loads == [], "nothing is loaded from elsewhere: the page opens from disk alone"
+    best_line = "".join(page.text)
+    assert f"--policy.path={run_dir / 'models' / 'best'}" in best_line and "Round 2" in best_line
+
+
+@pytest.mark.skipif(not shutil.which("chromium"), reason="Chromium is not installed (apt-get install chromium)")
+def test_chromium_renders_the_report_with_no_console_error(tmp_path):
+    """Chromium (headless) loads the report from disk: no console message, every chart decoded to
+    its real size, both tables laid out; a screenshot is taken."""
+    run_dir = tmp_path / "2026-11-30_12-00-00"
+    history, config = a_run(run_dir)
+    report = write_report(run_dir, history, config, {"round": 2, "action-mse": 250.5}, 3)
+    # A probe beside the report (not in it: the report has no script) measures what was rendered.
+    probe = run_dir / "probe.html"
+    probe.write_text(
+        report.read_text().replace(
+            "</body>",
+            "<script>window.onload = () => { document.title = JSON.stringify({"
+            "images: [...document.images].map(i => [i.complete, i.naturalWidth, i.naturalHeight]),"
+            "rows: [...document.querySelectorAll('table')].map(t => [t.id, t.rows.length, t.offsetHeight])}); };"
+            "</script></body>",
+        )
+    )
+    # No /dev/shm (Ray's object store may hold it all while other tests run), nothing fetched in the
+    # background (there is no network), console messages on stderr.
+    chromium = [
+        "chromium",
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--no-first-run",
+        f"--user-data-dir={tmp_path / 'chromium'}",
+        "--enable-logging=stderr",
+        "--v=0",
+    ]
+    dom = subprocess.run(
+        [*chromium, "--dump-dom", probe.as_uri()],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    title = dom.stdout.split("<title>", 1)[1].split("</title>", 1)[0].replace("&quot;", '"')
+    rendered = json.loads(title)
+    assert rendered["images"] == [[True, 700, 450], [True, 700, 450]], "both charts decode at 7x4.5 in, 100 dpi"
+    tables = {name: (rows, height) for name, rows, height in rendered["rows"]}
+    assert tables["rounds"][0] == 4 and tables["clients"][0] == 4 and all(h > 0 for _, h in tables.values())
+    shot = tmp_path / "report.png"
+    loaded = subprocess.run(
+        [*chromium, "--window-size=1200,1600", f"--screenshot={shot}", report.as_uri()],
+        stdin=subprocess.DEVNULL,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    assert shot.stat().st_size > 10_000
+    console = [line for line in (dom.stderr + loaded.stderr).splitlines() if "CONSOLE" in line]
+    assert console == [], console
+
+
+def test_every_round_rewrites_the_report(tmp_path):
+    """write_report replaces the page whole (temp file + rename): one report, no temp left."""
+    run_dir = tmp_path / "run"
+    history, config = a_run(run_dir)
+    write_report(run_dir, history, config, None, 3)
+    first = (run_dir / REPORT_FILE).read_text()
+    assert "no <code>models/best</code>" in first
+    write_report(run_dir, history, config, {"round": 1, "action-mse": 300.123456}, 3)
+    assert sorted(p.name for p in run_dir.iterdir()) == ["clients", REPORT_FILE, "server"]
+    assert (run_dir / REPORT_FILE).read_text() != first

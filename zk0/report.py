@@ -1,0 +1,239 @@
+"""``report.html``: a run on one page, opened from disk, rewritten after every round like the charts.
+
+What a robot owner asks of a run, in order: which model to use and how (``models/best`` and the
+``lerobot-rollout`` command), how the rounds went (a table and the charts), how each client took
+part (samples, losses, and every refusal with its sentence), and what the run was configured
+with. Its numbers are the ones in ``metrics_history.json`` (each cell carries the exact value in
+``data-value``); the charts are embedded as data URIs, so the file is whole on its own: no server,
+no network, nothing to break when the folder is copied. Jinja2 renders it, with autoescaping on:
+dataset names and refusal sentences come from users.
+"""
+
+from __future__ import annotations
+
+import base64
+import os
+import tempfile
+from pathlib import Path
+
+from jinja2 import Environment, StrictUndefined
+
+from zk0.artifacts import CHARTS, SIM_CHARTS
+
+REPORT_FILE = "report.html"
+ROLLOUT = (
+    "lerobot-rollout --strategy.type=base \\\n"
+    "  --robot.type=so101_follower --robot.port=/dev/ttyACM0 --robot.id=my_arm \\\n"
+    '  --robot.cameras="{ camera1: {type: opencv, index_or_path: 0, width: 640, height: 480, fps: 30}, '
+    'camera2: {type: opencv, index_or_path: 2, width: 640, height: 480, fps: 30} }" \\\n'
+    '  --task="<the task, as your dataset words it>" --duration=60 \\\n'
+    "  --policy.path=POLICY"
+)
+
+TEMPLATE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>zk0 run {{ name }}</title>
+<style>
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 70em; padding: 0 1em; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.5em 0; }
+th, td { border: 1px solid #ddd; padding: 0.25em 0.6em; text-align: right; }
+th { background: #f4f4f4; } td.text, th.text { text-align: left; }
+tr.best td { background: #eef8ee; font-weight: bold; }
+pre { background: #f6f6f6; padding: 0.8em; overflow-x: auto; }
+.charts img { max-width: 48%; margin: 0.5em 1%; } .refusal { color: #a00; }
+</style>
+</head>
+<body>
+<h1>zk0 run {{ name }}</h1>
+<p id="status">{{ status }}</p>
+
+<h2>Best model</h2>
+{% if best %}
+<p id="best">Round {{ best.round }}{% if best.round == 0 %} (the starting model: no round beat it){% endif %}:
+{% if "success-rate" in best %}success rate {{ "%.0f"|format(100 * best["success-rate"]) }}% in the simulator, {% endif %}
+server action MSE {{ best["action-mse"]|num }}. It is a lerobot policy folder: <code>{{ best_path }}</code>.</p>
+<p>Run it on an SO-101 with lerobot's own tool (SO-100: <code>--robot.type=so100_follower</code>; cameras and
+task as in docs/robot-owners.md):</p>
+<pre>{{ rollout }}</pre>
+{% else %}
+<p id="best">The server has evaluated no round yet, so there is no <code>models/best</code>.</p>
+{% endif %}
+
+<h2>Rounds</h2>
+<table id="rounds">
+<tr>{% for column in round_columns %}<th>{{ column.title }}</th>{% endfor %}</tr>
+{% for row in rounds %}
+<tr{% if best and row.round == best.round %} class="best"{% endif %}>
+{% for column in round_columns %}{{ cell(row.cells[column.key]) }}{% endfor %}
+</tr>
+{% endfor %}
+</table>
+
+{% if charts %}
+<h2>Charts</h2>
+<div class="charts">
+{% for chart in charts %}<img src="data:image/png;base64,{{ chart.data }}" alt="{{ chart.title }}">{% endfor %}
+</div>
+{% endif %}
+{% if videos %}
+<h2>Simulator rollouts</h2>
+{% for video in videos %}<p>{{ video.title }}<br><video controls width="480" src="{{ video.src }}"></video></p>{% endfor %}
+{% endif %}
+
+<h2>Clients</h2>
+<table id="clients">
+<tr><th>client</th><th class="text">dataset</th><th>rounds trained</th><th>samples trained</th>
+<th>last train loss</th><th>last evaluation action MSE</th><th>refusals</th></tr>
+{% for client in clients %}
+<tr><td>{{ client.index }}</td><td class="text">{{ client.dataset }}</td><td>{{ client.rounds }}</td>
+{{ cell(client.samples) }}{{ cell(client.loss) }}{{ cell(client.mse) }}<td>{{ client.refusals|length }}</td></tr>
+{% endfor %}
+</table>
+{% for client in clients %}{% for refusal in client.refusals %}
+<p class="refusal">Round {{ refusal.round }}, client {{ client.index }} ({{ client.dataset }}), {{ refusal.phase }}: {{ refusal.reason }}</p>
+{% endfor %}{% endfor %}
+
+<h2>Configuration</h2>
+<table id="config">
+{% for key, value in config %}<tr><th class="text">{{ key }}</th><td class="text">{{ value }}</td></tr>{% endfor %}
+</table>
+<p>All of it, per round and per client, is in <code>server/metrics_history.json</code>; the logs are
+<code>server/server.log</code> and <code>clients/client_&lt;i&gt;/client.log</code>.</p>
+</body>
+</html>
+"""
+
+ROUND_COLUMNS = [
+    ("round", "round"),
+    ("trained", "clients trained"),
+    ("refused", "refused"),
+    ("train-loss", "train loss"),
+    ("client-mse", "clients' action MSE"),
+    ("policy-loss", "server policy loss"),
+    ("action-mse", "server action MSE"),
+    ("success-rate", "success rate"),
+    ("wall-s", "seconds since start"),
+]
+
+
+def _num(value: float | int | None) -> str:
+    """How the report prints a figure: 4 significant digits, '-' where there is none."""
+    if value is None:
+        return "-"
+    return str(value) if isinstance(value, int) else f"{value:.4g}"
+
+
+def _cell(value: float | int | None):
+    """A table cell with its figure as printed and, in ``data-value``, as in the JSON."""
+    from markupsafe import Markup
+
+    if value is None:
+        return Markup("<td>-</td>")
+    return Markup('<td data-value="{}">{}</td>').format(repr(value), _num(value))
+
+
+_ENV = Environment(autoescape=True, undefined=StrictUndefined, trim_blocks=True, lstrip_blocks=True)
+_ENV.filters["num"] = _num
+_TEMPLATE = _ENV.from_string(TEMPLATE, globals={"cell": _cell})
+
+
+def round_row(record: dict) -> dict:
+    """One row of the rounds table, from a round's record in ``metrics_history.json``."""
+    clients = record["clients"].values()
+    server = record.get("server-evaluate", {})
+    values = {
+        "round": record["round"],
+        "trained": sum("train" in c and "error" not in c["train"] for c in clients),
+        "refused": sum("error" in c.get(phase, {}) for c in clients for phase in ("train", "evaluate")),
+        "train-loss": record.get("aggregate-train", {}).get("train-loss"),
+        "client-mse": record.get("aggregate-evaluate", {}).get("action-mse"),
+        "policy-loss": server.get("policy-loss"),
+        "action-mse": server.get("action-mse"),
+        "success-rate": server.get("success-rate"),
+        "wall-s": record.get("wall-s"),
+    }
+    return {"round": record["round"], "cells": values}
+
+
+def client_rows(history: dict) -> list[dict]:
+    """Each client that took part: rounds and samples trained, its latest losses, its refusals."""
+    rows = []
+    for index, dataset in history["clients"].items():
+        trained = [r["clients"][index]["train"] for r in history["rounds"] if "train" in r["clients"].get(index, {})]
+        evaluated = [
+            r["clients"][index]["evaluate"] for r in history["rounds"] if "evaluate" in r["clients"].get(index, {})
+        ]
+        ok = [t for t in trained if "error" not in t]
+        scored = [e for e in evaluated if "error" not in e]
+        refusals = [
+            {"round": r["round"], "phase": phase, "reason": r["clients"][index][phase]["error"]}
+            for r in history["rounds"]
+            for phase in ("train", "evaluate")
+            if "error" in r["clients"].get(index, {}).get(phase, {})
+        ]
+        rows.append(
+            {
+                "index": int(index),
+                "dataset": dataset,
+                "rounds": len(ok),
+                "samples": sum(int(t.get("num-examples", 0)) for t in ok) if ok else None,
+                "loss": ok[-1].get("train-loss") if ok else None,
+                "mse": scored[-1].get("action-mse") if scored else None,
+                "refusals": refusals,
+            }
+        )
+    return rows
+
+
+def _charts(server_dir: Path) -> list[dict]:
+    charts = []
+    for metric, filename in {**CHARTS, **SIM_CHARTS}.items():
+        path = server_dir / filename
+        if path.is_file():
+            charts.append({"title": f"{metric} per round", "data": base64.b64encode(path.read_bytes()).decode()})
+    return charts
+
+
+def _videos(run_dir: Path, best: dict | None, last: int) -> list[dict]:
+    """The best and the latest round's rollout videos, linked by relative path (they stay beside it)."""
+    videos = []
+    for title, number in (("best round", best["round"] if best else None), ("latest round", last)):
+        path = run_dir / "server" / "videos" / f"round_{number}.mp4"
+        if number is not None and path.is_file() and all(v["src"] != path.relative_to(run_dir).as_posix() for v in videos):
+            videos.append({"title": f"Round {number} ({title})", "src": path.relative_to(run_dir).as_posix()})
+    return videos
+
+
+def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_rounds: int) -> str:
+    """The report's HTML for ``run_dir``, from its history (as ``metrics_history.json`` has it)."""
+    rounds = [round_row(r) for r in history["rounds"]]
+    last = rounds[-1]["round"] if rounds else 0
+    status = f"Round {last} of {num_rounds}" + (" (finished)." if last >= num_rounds else "; the run goes on or was stopped.")
+    best_path = run_dir / "models" / "best"
+    columns = [{"key": k, "title": t} for k, t in ROUND_COLUMNS if any(r["cells"][k] is not None for r in rounds)]
+    return _TEMPLATE.render(
+        name=run_dir.name,
+        status=status,
+        best=best,
+        best_path=str(best_path),
+        rollout=ROLLOUT.replace("POLICY", str(best_path)),
+        round_columns=columns,
+        rounds=rounds,
+        charts=_charts(run_dir / "server"),
+        videos=_videos(run_dir, best, last),
+        clients=client_rows(history),
+        config=sorted(config.items()),
+    )
+
+
+def write_report(run_dir: Path, history: dict, config: dict, best: dict | None, num_rounds: int) -> Path:
+    """Write ``report.html`` in ``run_dir`` atomically (a browser open on it never sees half a page)."""
+    path = run_dir / REPORT_FILE
+    html = render(run_dir, history, config, best, num_rounds)
+    with tempfile.NamedTemporaryFile("w", dir=run_dir, suffix=".tmp", delete=False, encoding="utf-8") as tmp:
+        tmp.write(html)
+    os.replace(tmp.name, path)
+    return path
