@@ -7,8 +7,8 @@ usage() {
 Usage: ./train.sh [options]
 
 Sets up .venv on first use (finds Python >= 3.12, installs zk0, FFmpeg where possible),
-then runs the zk0 Flower app with `flwr run . local --stream` and prints where the
-outputs are. With no options: the quick federation (4 simulated SO-100/SO-101 clients,
+then runs the zk0 Flower app with `flwr run . local --stream`: a header, one line per round
+and where the outputs and the run's report.html are. With no options: the quick federation (4 simulated SO-100/SO-101 clients,
 1 round, 2 local steps, tiny offline SmolVLA on CPU).
 
 Options:
@@ -27,6 +27,8 @@ Options:
       --detached          run in a tmux session named zk0-<time> and return; prints how to
                           attach, follow the log and stop it
       --print             print the command that would run, and stop
+      --verbose           show everything Flower, Ray and the libraries print (by default the
+                          console shows zk0's own lines; the rest is in the run's logs)
   -h, --help              show this help
 USAGE
 }
@@ -36,6 +38,8 @@ setup_only=0
 docker=0
 detached=0
 print_only=0
+verbose="${ZK0_VERBOSE:-0}"
+[ "$verbose" = 0 ] || verbose=1
 preset=()
 overrides=()
 inner=() # the arguments again, less --docker/--detached/--print: what a wrapped train.sh gets
@@ -45,6 +49,7 @@ while [ $# -gt 0 ]; do
     --docker) docker=1; shift; continue ;;
     --detached) detached=1; shift; continue ;;
     --print) print_only=1; shift; continue ;;
+    --verbose) verbose=1; inner+=("$1"); shift; continue ;;
     esac
     case "$1" in
     -m | --mode | -r | --run-config | -p | --preset | --resume) [ $# -ge 2 ] && inner+=("$1" "$2") ;;
@@ -115,6 +120,7 @@ cd "$ZK0_ROOT"
 run_config="$(zk0 check --print "${preset[@]}" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}")" || exit 2
 flwr_command=(flwr run . local --stream --federation-config "configs/federation/$mode.toml" --run-config "$run_config")
 [ "$print_only" = 0 ] || launch "${flwr_command[@]}"
+export ZK0_VERBOSE="$verbose" # the ServerApp and ClientApps read it (through the SuperLink flwr run starts)
 zk0 assets --run-config "$run_config" >/dev/null
 if [ "$setup_only" = 1 ]; then
     zk0_log "Set-up complete; run ./train.sh to start the quick federation."
@@ -146,20 +152,25 @@ trap stop_superlink EXIT
 interrupted() {
     trap - INT TERM
     echo >&2
-    local run_id run_dir last again=() shown=""
+    local run_id run_dir last written again=() shown=""
     run_id="$(grep -o 'Successfully started run [0-9]*' "$log" | grep -o '[0-9]*$' | head -n 1 || true)"
     zk0_log "Stopping run ${run_id:-(not started yet)}..."
+    # The ServerApp's process first (it writes nothing once signalled: zk0.stopping), then Flower's
+    # record of the run, then everything else.
+    pkill -TERM -f "flwr-(simulation|serverapp) --runtime-api-address [^ ]*:$port( |\$)" || true
     [ -z "$run_id" ] || flwr stop "$run_id" local >/dev/null 2>&1 || true
     kill "$flwr_pid" 2>/dev/null || true
     stop_superlink
     run_dir="$(run_folder)"
-    rm -f "$log"
+    keep_log "$run_dir"
     if [ -z "$run_dir" ]; then
+        rm -f "$log"
         zk0_log "Stopped before the run wrote anything."
         exit 130
     fi
     last="$(ls -d "$run_dir"/models/checkpoint_round_*/model.safetensors 2>/dev/null | sort -V | tail -n 1 || true)"
-    zk0_log "Stopped. Everything written so far is in $run_dir"
+    written="$(ls "$run_dir"/server/round_*.json 2>/dev/null | sed 's/.*round_\([0-9]*\)\.json/\1/' | sort -n | tail -n 1 || true)"
+    zk0_log "Stopped in round $((${written:-0} + 1)) (rounds up to ${written:-0} are written). Everything written so far is in $run_dir"
     if [ -z "$last" ]; then
         zk0_log "No checkpoint was complete yet, so there is nothing to resume; start again with ./train.sh."
         exit 130
@@ -175,23 +186,47 @@ interrupted() {
 
 # The run's folder, as the ServerApp names it in the log ("Writing to ...", "Resuming ... after").
 run_folder() {
-    sed -n -e 's/.* - Writing to \(.*\)$/\1/p' -e 's/.* - Resuming \(.*\) after round .*/\1/p' "$log" | head -n 1
+    sed -n -e 's/.*Writing to \(.*\)$/\1/p' -e 's/.*Resuming \(.*\) after round .*/\1/p' "$log" | head -n 1
+}
+
+# Everything `flwr run` printed goes with the run, as console.log (the full records of the server
+# and of each client are in server/server.log and clients/client_<i>/client.log).
+keep_log() {
+    if [ -n "$1" ] && [ -d "$1" ]; then mv "$log" "$1/console.log"; fi
+}
+
+# What a person reads: the ServerApp's own lines (the header, a line per round, warnings and
+# refusals, the summary), without colours. Simulated clients' lines (Ray prefixes them with
+# "(ClientAppActor pid=...)") stay in their logs: the server reports each refusal, naming the
+# client. --verbose shows every line.
+for_a_person() {
+    if [ "$verbose" = 1 ]; then
+        cat
+    else
+        sed -u -n -E -e 's/\x1b\[[0-9;]*m//g' -e '/^\([A-Za-z]+ pid=[0-9]+\) /d' -e '/^(\[zk0\] |zk0: )/p'
+    fi
 }
 
 zk0_log "Starting the federation (mode: $mode)..."
 log="$(mktemp)"
 # In the background, so that a signal reaches `interrupted` at once instead of after the run.
-"${flwr_command[@]}" > >(tee "$log") 2>&1 &
+# The console filter ignores Ctrl-C (the terminal signals the whole group): it prints to the end.
+"${flwr_command[@]}" > >(trap '' INT; tee "$log" | for_a_person) 2>&1 &
 flwr_pid=$!
 trap interrupted INT TERM
 wait "$flwr_pid" || true
 trap - INT TERM
+wait # for the console filter to print its last lines
+outputs="$(run_folder)"
 # `flwr run --stream` exits 0 even when the ServerApp fails; Flower prints an exit code then.
 if grep -q "Exit Code: [1-9]" "$log"; then
-    rm -f "$log"
-    zk0_log "The federation failed; the reason is in the log above."
+    keep_log "$outputs"
+    if [ "$verbose" = 1 ] || [ -z "$outputs" ]; then
+        zk0_log "The federation failed; the reason is in the log above."
+    else
+        zk0_log "The federation failed (above); the full record is in $outputs/server/server.log"
+    fi
     exit 1
 fi
-outputs="$(run_folder)"
-rm -f "$log"
-zk0_log "Outputs: ${outputs:-none written (see the log above)}"
+keep_log "$outputs"
+zk0_log "Outputs: ${outputs:-none written; what flwr run printed is in $log}"

@@ -144,7 +144,7 @@ def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(s
             cpu_federation(num_supernodes=2, actors=1),
         )
     runs = list(out.iterdir()) if out.exists() else []
-    assert len(runs) == 1 and "Done: outputs in" in log, log[-3000:]
+    assert len(runs) == 1 and "Done in " in log, log[-3000:]
     history = json.loads((runs[0] / "server" / "metrics_history.json").read_text())
 
     entry = registry.clients[0]

@@ -107,6 +107,24 @@ def test_cli_assets_prints_paths_and_rejects_bad_names(tmp_path, capsys):
     assert "'synth-nope'" in capsys.readouterr().err
 
 
+def test_cli_assets_shows_one_bar_of_its_own_and_logs_what_the_libraries_print(tmp_path):
+    """Generating prints zk0's progress bar, not FFmpeg's muxer lines or datasets' bars; those are in
+    assets.log in the cache."""
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "zk0.cli", "assets", "--cache-dir", str(tmp_path), "--only", "synth-so101-reach"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
+    assert done.stdout.strip() == f"synth-so101-reach: {tmp_path / 'datasets' / 'zk0' / 'synth_so101_reach'}"
+    assert "Offline assets: 100%" in done.stderr and "moov" not in done.stderr and "Map" not in done.stderr
+    assert "moving the moov atom" in (tmp_path / "assets.log").read_text()
+
+
 def scene_target(dataset: LeRobotDataset, index: int, spec) -> tuple[float, float]:
     """Where the task's target lies in the scene camera, as fractions of the image."""
     item = dataset[index]

@@ -85,7 +85,7 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     best = last["best"]
     assert best["action-mse"] == min(r["server-evaluate"]["action-mse"] for r in history["rounds"])
     said = "no round beat the starting model" if best["round"] == 0 else f"models/best is round {best['round']}"
-    assert said in log.split("Done: outputs in")[-1]
+    assert said in log.split("Done in ")[-1]
 
     checkpoint = models / "checkpoint_round_2"
     policy = SmolVLAPolicy.from_pretrained(checkpoint)
@@ -154,7 +154,7 @@ def test_a_run_that_only_gets_worse_hands_back_round_0(flower_env, tmp_path, reg
     mse = [r["server-evaluate"]["action-mse"] for r in rounds]
     assert mse[1] > mse[0] and mse[2] > mse[0], f"the premise: every round is worse than round 0 ({mse})"
     assert [r["best"] for r in rounds] == [{"round": 0, "action-mse": mse[0]}] * 3
-    assert "no round beat the starting model" in log.split("Done: outputs in")[-1]
+    assert "no round beat the starting model" in log.split("Done in ")[-1]
 
     best = run / "models" / "best"
     assert json.loads((best / "zk0_round.json").read_text())["round"] == 0
@@ -244,3 +244,39 @@ def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_k
         assert rounds[r]["clients"]["0"]["train"]["update-scale"] == 1.0
     mse = [r["server-evaluate"]["action-mse"] for r in rounds]
     assert mse[-1] < 0.8 * mse[0], f"it learns as test_bf16_exchange_learns_like_fp32's run does: {mse}"
+
+
+def test_flwr_stop_ends_the_run_at_once(flower_env, tmp_path):
+    """`flwr stop` in the middle of 60 short rounds: Flower signals the ServerApp's process when the
+    SuperLink refuses its next request, then lets the ServerApp's thread run on for up to 5 s while
+    it exits (several rounds); zk0's ServerApp writes nothing more from the signal on, and says so."""
+    import re
+    import subprocess
+    import sys
+    import time
+
+    from zk0.simulation import CONNECTION
+
+    out = tmp_path / "outputs"
+    flwr = str(Path(sys.executable).with_name("flwr"))
+    config = f"num-server-rounds=60 local-steps=1 batch-size=4 eval-batches=1 checkpoint-interval=30 output-dir='{out}'"
+    started = subprocess.run(
+        [flwr, "run", ".", CONNECTION, "--federation-config", ONE_ACTOR, "--run-config", config],
+        env=flower_env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
+    run_id = re.search(r"Successfully started run (\d+)", started.stdout + started.stderr)[1]
+    deadline = time.monotonic() + 300
+    while not list(out.glob("*/server/round_1.json")):
+        assert time.monotonic() < deadline, "round 1 was never written"
+        time.sleep(0.05)
+    subprocess.run([flwr, "stop", run_id, CONNECTION], env=flower_env, capture_output=True, timeout=60, check=True)
+    (run_dir,) = out.iterdir()
+    at_stop = max(int(p.stem.split("_")[1]) for p in (run_dir / "server").glob("round_*.json"))
+    time.sleep(6)  # past Flower's 5 s force exit
+    written = sorted(int(p.stem.split("_")[1]) for p in (run_dir / "server").glob("round_*.json"))
+    assert written[-1] <= at_stop + 1, f"round {at_stop} was written at the stop, then rounds up to {written[-1]}"
+    assert "the server writes nothing more" in (run_dir / "server" / "server.log").read_text()

@@ -25,7 +25,8 @@ def test_each_round_ends_with_a_line_a_person_reads(tmp_path, monkeypatch):
     history.add(1, "server-evaluate", {"action-mse": 61.54321})
     history.add_client(2, "train", 0, {"train-loss": 0.3})
     assert artifacts.progress(1) == (
-        "Round 1/4: 2 clients trained, train loss 0.5, server action MSE 61.54, 30.0 s/round, about 1m 30s left"
+        "Round 1/4: 2 clients trained, 1 refused, train loss 0.5, server action MSE 61.54, 30.0 s/round, "
+        "about 1m 30s left"
     )
     assert artifacts.progress(2) == (
         "Round 2/4: 1 client trained, train loss -, server action MSE not evaluated, 35.0 s/round, about 1m 10s left"

@@ -86,10 +86,95 @@ def test_flower_packs_the_app_without_walking_the_linked_venv(tmp_path):
     assert set(collect_files(app)) == {"pyproject.toml"}
 
 
+def own_flower(tmp_path: Path) -> dict[str, str]:
+    """An environment whose `flwr run` starts a SuperLink of its own (own home, own ports)."""
+    from zk0.simulation import free_port
+
+    return {
+        **os.environ,
+        "FLWR_HOME": str(tmp_path / "flwr"),
+        "FLWR_LOCAL_SUPERLINK_HTTP_API_PORT": str(free_port()),
+        "FLWR_LOCAL_CONTROL_API_PORT": str(free_port()),
+    }
+
+
+def check_console(printed: str, run_dir: Path, rounds_run: int) -> None:
+    """train.sh's console is for a person: at most 25 lines for a round and one per further round,
+    zk0's lines only (no traceback, progress bar or Flower metric dump), and every figure the header,
+    the round lines and the summary print is the one in the run's JSON."""
+    import json
+
+    lines = printed.splitlines()
+    assert len(lines) <= 25 + rounds_run - 1, printed
+    assert all(line.startswith("[zk0] ") or line.startswith("  ./train.sh") for line in lines), printed
+    history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    config = json.loads((run_dir / "server" / "run_config.json").read_text())
+    rounds = {r["round"]: r for r in history["rounds"]}
+    last = max(rounds)
+    clients = ", ".join(f"{i} {name}" for i, name in history["clients"].items())
+    assert f"[zk0] {len(history['clients'])} clients: {clients}; the server evaluates on " in printed
+    tensors = rounds[last]["global-arrays"]["tensors"]
+    assert re.search(rf"\[zk0\] Model: {config['model']} SmolVLA \([\d,]+ trainable parameters in {tensors} tensors\)", printed)
+    steps = f"{config['num-server-rounds']} round{'s' * (config['num-server-rounds'] != 1)} x {config['local-steps']}"
+    assert f"[zk0] {steps} local steps (batch {config['batch-size']})" in printed
+    if 0 in rounds and f"[zk0] Writing to {run_dir}" in printed:
+        assert f"Round 0 (the starting model): server action MSE {rounds[0]['server-evaluate']['action-mse']:.4g}" in printed
+    for line in lines:
+        shown = re.match(r"\[zk0\] Round (\d+)/\d+: (\d+) clients? trained, train loss ([\d.e+-]+), server action MSE ([\d.e+-]+)", line)
+        if shown:
+            record = rounds[int(shown[1])]
+            trained = sum("error" not in c.get("train", {"error": ""}) for c in record["clients"].values())
+            assert shown.groups()[1:] == (
+                str(trained),
+                f"{record['aggregate-train']['train-loss']:.4g}",
+                f"{record['server-evaluate']['action-mse']:.4g}",
+            ), line
+    assert len([line for line in lines if re.match(r"\[zk0\] Round \d+/", line)]) == rounds_run
+    best = rounds[last]["best"]
+    assert re.search(rf"\[zk0\] Done in \d+ s: models/best is round {best['round']} \(server action MSE {best['action-mse']:.4g}", printed)
+    assert f"[zk0] Report: {run_dir}/report.html" in printed and (run_dir / "report.html").is_file()
+    assert (run_dir / "console.log").is_file(), "what flwr run printed is kept with the run"
+
+
 @pytest.mark.e2e
-def test_ctrl_c_stops_the_run_and_prints_the_command_that_continues_it(tmp_path):
-    """SIGINT to ./train.sh during round 2 of 4: no later round, no process of the run left, and
-    the printed --resume command finishes the run."""
+def test_the_quick_runs_console_reads_in_one_glance(tmp_path):
+    """The README's ./train.sh (1 round, 2 steps), with its outputs in a folder of the test's; its
+    report's figures are the JSON's."""
+    import json
+
+    out = tmp_path / "outputs"
+    done = subprocess.run(
+        [TRAIN, "-r", f"output-dir='{out}'"],
+        env=own_flower(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=False,
+    )
+    printed = done.stdout + done.stderr
+    assert done.returncode == 0, printed[-3000:]
+    (run_dir,) = out.iterdir()
+    check_console(printed, run_dir, rounds_run=1)
+    assert printed.splitlines()[-1] == f"[zk0] Outputs: {run_dir}"
+    from tests.test_report import Tables
+
+    page = Tables()
+    page.feed((run_dir / "report.html").read_text())
+    history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    header, *rows = page.tables["rounds"]
+    column = [c[0] for c in header].index("server action MSE")
+    assert [float(row[column][1]) for row in rows] == [r["server-evaluate"]["action-mse"] for r in history["rounds"]]
+    log = (run_dir / "server" / "server.log").read_text()
+    assert "Aggregated ClientApp-side Train Metrics" in log and "Starting ValidatingStrategy strategy" in log, (
+        "Flower's own lines are in the log, not lost"
+    )
+
+
+@pytest.mark.e2e
+def test_ctrl_c_stops_the_run_at_once_and_prints_the_command_that_continues_it(tmp_path):
+    """SIGINT to ./train.sh after round 1 of 6 short rounds (several fit in Flower's 5 s exit): no
+    later round is written, no file of the run changes once it says it stopped, no process of the run
+    is left, and the printed --resume command finishes the run."""
     import json
     import shlex
     import signal
@@ -97,41 +182,43 @@ def test_ctrl_c_stops_the_run_and_prints_the_command_that_continues_it(tmp_path)
 
     import psutil
 
-    from zk0.simulation import free_port, superlink_tree
+    from zk0.simulation import superlink_tree
 
     out = tmp_path / "outputs"
-    env = {
-        **os.environ,
-        "FLWR_HOME": str(tmp_path / "flwr"),
-        "FLWR_LOCAL_SUPERLINK_HTTP_API_PORT": str(free_port()),
-        "FLWR_LOCAL_CONTROL_API_PORT": str(free_port()),
-    }
+    env = own_flower(tmp_path)
     overrides = (
-        f"num-server-rounds=4 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1 output-dir='{out}'"
+        f"num-server-rounds=6 local-steps=1 batch-size=4 checkpoint-interval=1 eval-batches=1 output-dir='{out}'"
     )
-    # As from a terminal: a shell that inherits an ignored SIGINT (pytest started in the background
-    # by a non-interactive shell, as `cmd &` does) cannot trap it, so the test puts the default back.
+    # As from a terminal: its own process group, which Ctrl-C signals whole (train.sh, flwr run and
+    # what Flower starts in it); and SIGINT at its default, since a shell that inherits it ignored
+    # (pytest started in the background by a non-interactive shell, as `cmd &` does) cannot trap it.
     first = subprocess.Popen(
         [TRAIN, "-r", overrides],
         env=env,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
+        process_group=0,
         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.monotonic() + 600
     while not list(out.glob("*/models/checkpoint_round_1")):
         assert first.poll() is None and time.monotonic() < deadline, first.stdout.read()[-3000:]
-        time.sleep(0.2)
+        time.sleep(0.05)
     run_processes = superlink_tree(env)
     assert run_processes, "the run's SuperLink and simulation are running"
-    first.send_signal(signal.SIGINT)
+    (run_dir,) = out.iterdir()
+    written = max(int(p.stem.split("_")[1]) for p in (run_dir / "server").glob("round_*.json"))
+    os.killpg(first.pid, signal.SIGINT)
     printed, _ = first.communicate(timeout=180)
     assert first.returncode == 130, printed[-3000:]
+    files = {p: p.stat().st_mtime_ns for p in run_dir.rglob("*")}
     time.sleep(3)
-    (run_dir,) = out.iterdir()
-    assert not (run_dir / "server" / "round_3.json").exists(), "no round after the interrupted one"
+    assert {p: p.stat().st_mtime_ns for p in run_dir.rglob("*")} == files, "nothing changes once it has stopped"
+    rounds = sorted(int(p.stem.split("_")[1]) for p in (run_dir / "server").glob("round_*.json"))
+    assert rounds[-1] == written, f"round {written} was written when stopped; the server went on to {rounds}"
     assert not [p.pid for p in run_processes if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert f"[zk0] Stopped in round {rounds[-1] + 1} (rounds up to {rounds[-1]} are written)" in printed
     assert f"Last complete checkpoint: {run_dir}/models/checkpoint_round_" in printed
     (command,) = [line.strip() for line in printed.splitlines() if line.startswith("  ./train.sh")]
     assert shlex.split(command) == ["./train.sh", "-r", overrides, "--resume", str(run_dir)]
@@ -141,5 +228,7 @@ def test_ctrl_c_stops_the_run_and_prints_the_command_that_continues_it(tmp_path)
     )
     assert second.returncode == 0, second.stderr[-3000:]
     history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
-    assert [r["round"] for r in history["rounds"]] == [0, 1, 2, 3, 4]
-    assert (run_dir / "models" / "checkpoint_round_4" / "model.safetensors").is_file()
+    assert [r["round"] for r in history["rounds"]] == list(range(7))
+    assert (run_dir / "models" / "checkpoint_round_6" / "model.safetensors").is_file()
+    resumed_from = int(re.search(r"after round (\d+)", second.stdout + second.stderr)[1])
+    check_console(second.stdout + second.stderr, run_dir, rounds_run=6 - resumed_from)

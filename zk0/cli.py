@@ -10,6 +10,7 @@ import tomllib
 from pathlib import Path
 
 from flwr.common.config import flatten_dict, parse_config_args
+from tqdm import tqdm
 
 from zk0 import deploy, machine
 from zk0.assets import TINY_BACKBONE, AssetError, default_cache_root, ensure_backbone, ensure_dataset
@@ -18,6 +19,7 @@ from zk0.certs import make_federation_certs
 from zk0.config import RunConfig, from_run_config
 from zk0.deploy import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
 from zk0.errors import OneSentenceParser, Zk0Error
+from zk0.logs import native_output_to
 from zk0.registry import PROJECT_ROOT, load_registry
 from zk0.sim.tasks import SIM_SPECS
 
@@ -32,11 +34,16 @@ def _assets(args: argparse.Namespace) -> int:
     for name in names:
         if name != TINY_BACKBONE and name not in SPECS and name not in SIM_SPECS:
             raise AssetError(f"Unknown asset {name!r}; expected one of {[TINY_BACKBONE, *SPECS, *SIM_SPECS]}.")
-    for name in names:
-        if name == TINY_BACKBONE:
-            path = ensure_backbone(root)
-        else:
-            path = ensure_dataset(name, root, seed=args.seed, episodes=args.episodes)
+    paths = {}
+    # One bar of zk0's own (shown once generating takes over a second); what the libraries print
+    # while generating (FFmpeg's muxer, datasets' bars) goes to assets.log in the cache.
+    with native_output_to(root / "assets.log") as console:
+        for name in tqdm(names, desc="Offline assets", unit="asset", file=console, delay=1.0):
+            if name == TINY_BACKBONE:
+                paths[name] = ensure_backbone(root)
+            else:
+                paths[name] = ensure_dataset(name, root, seed=args.seed, episodes=args.episodes)
+    for name, path in paths.items():
         print(f"{name}: {path}")
     return 0
 

@@ -31,7 +31,7 @@ from zk0 import app_fingerprint, client_state, machine
 from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_split, train_loader
 from zk0.errors import Zk0Error
-from zk0.logs import add_file_sink, setup_logging
+from zk0.logs import add_file_sink, prints_to_log, setup_logging
 from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, set_trainable, trainable_tensors
 from zk0.preflight import check_dataset, model_inputs
 from zk0.registry import DatasetEntry, Registry, load_registry
@@ -124,7 +124,7 @@ def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, 
     index = client_index(registry, dict(context.node_config))
     entry = registry.clients[index]
     add_file_sink(client_log(dict(context.node_config), run, str(config["run-name"]), index), f"client {index}")
-    with _named(index, entry.name):
+    with _named(index, entry.name), prints_to_log("lerobot"):
         _SESSIONS[key] = build_client(run, entry, registry.model_cameras(), index, model_shapes(config))
     return _SESSIONS[key], time.perf_counter() - started
 

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from functools import partial
 from importlib.metadata import version
 
+from flwr.supercore.exit import add_exit_handler
 from flwr.superlink.grid import InMemoryGrid
 from lerobot.datasets.dataset_reader import DatasetReader
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -50,6 +51,13 @@ def is_simulation(grid: object) -> bool:
     return isinstance(grid, InMemoryGrid)
 
 
+def on_flower_exit(handler: Callable[[], None]) -> None:
+    """Call ``handler`` as soon as Flower ends this process (a stopped run's signal, or the end of
+    the run), before its other exit handlers and its force-exit timer; Flower's ``add_exit_handler``
+    is not part of its public API (``flwr.supercore``)."""
+    add_exit_handler(handler, run_before_force_exit=True)
+
+
 def check() -> None:
     """Raise, naming the installed versions, if a private name above is gone or changed shape."""
     versions = f"lerobot {version('lerobot')}, torch {version('torch')}, flwr {version('flwr')}"
@@ -61,6 +69,8 @@ def check() -> None:
         problems.append("DatasetReader._return_uint8")
     if "_last_lr" not in inspect.getsource(LRScheduler.get_last_lr):
         problems.append("LRScheduler._last_lr behind get_last_lr()")
+    if "run_before_force_exit" not in inspect.signature(add_exit_handler).parameters:
+        problems.append("flwr.supercore.exit.add_exit_handler(handler, run_before_force_exit=...)")
     if problems:
         raise RuntimeError(
             f"zk0 relies on {', '.join(problems)}, which {versions} no longer has; update zk0/internals.py."

@@ -1,5 +1,5 @@
-"""What the server keeps of every round: clients' records, JSON and charts, checkpoints, the best
-model so far, the Hub staging, W&B, and one progress line a person reads.
+"""What the server keeps of every round: clients' records, JSON and charts, the report, checkpoints,
+the best model so far, the Hub staging, W&B, and one progress line a person reads.
 
 The best model is the one with the lowest server action MSE of every evaluated round, round 0
 (the starting model) included, kept in ``models/best``: a run that starts from a pretrained
@@ -8,7 +8,8 @@ model never hands back one that does worse on the server's evaluation set than w
 ``RoundArtifacts`` is the observer ``zk0.aggregation.ValidatingStrategy`` calls: with the client
 replies each phase counted or lost (``record_clients``), and once a round is over, after Flower's
 ``evaluate_fn`` evaluated the global model (``round_ended``). It writes only from what it is
-given, so a simulation and a deployment leave the same files.
+given, so a simulation and a deployment leave the same files. Once the run is stopped (Ctrl-C,
+``flwr stop``) it writes nothing more (``zk0.stopping``).
 """
 
 from __future__ import annotations
@@ -22,11 +23,14 @@ from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
+from zk0 import stopping
 from zk0.artifacts import ROUND_FILE, History, save_checkpoint
 from zk0.config import RunConfig
 from zk0.hub import can_push, publish
+from zk0.logs import say
 from zk0.policy import PolicyBundle, set_trainable
 from zk0.registry import DatasetEntry, Registry
+from zk0.report import write_report
 from zk0.stats import stats_from_record
 from zk0.tracking import Tracker
 from zk0.wire import CLIENT
@@ -84,25 +88,31 @@ class RoundArtifacts:
         evaluation: MetricRecord | None,
         server_state: dict[str, np.ndarray],
     ) -> None:
-        """The round's JSON and charts, a checkpoint (with the server optimiser's state) when the run
-        keeps one, W&B, the progress line."""
+        """The round's JSON, charts and report, a checkpoint (with the server optimiser's state) when
+        the run keeps one, W&B, the progress line."""
+        stopping.check(server_round)
         self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         if evaluation is not None:
             self.history.add(server_round, "server-evaluate", dict(evaluation))
             self.keep_if_best(server_round, arrays, dict(evaluation))
         if server_round and self.unsaved:  # round 0's model is written once a round has trained
+            stopping.check(server_round)
             self.save(self.best["round"], *self.unsaved, "best")
             self.unsaved = None
         self.history.add(server_round, "best", self.best)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
+        write_report(self.history.run_dir, self.history.snapshot(), self.run.to_flat(), self.best, self.run.num_server_rounds)
         if self.run.checkpoints_in(server_round):
+            stopping.check(server_round)
             self.checkpoint(server_round, arrays, evaluation, server_state)
         if server_round == self.run.num_server_rounds and self.run.hf_repo_id:
             self.publish_best()
         self.tracker.log(server_round, self.history.round(server_round))
         if server_round:
-            logger.info(self.progress(server_round))
+            say(self.progress(server_round))
+        elif evaluation is not None:
+            say(self.starting_line(dict(evaluation)))
 
     def checkpoint(
         self,
@@ -164,6 +174,10 @@ class RoundArtifacts:
         evaluation = json.loads((path / ROUND_FILE).read_text())["server-evaluate"]
         publish(self.run, self.history.run_dir, path, self.best["round"], self.entries(), evaluation, self.push)
 
+    def elapsed(self) -> float:
+        """Seconds since this process's first round began (a resumed run counts from its resume)."""
+        return time.perf_counter() - self.started
+
     def summary(self) -> str:
         """Which round ``models/best`` holds, as the run's last line says it."""
         if self.best is None:
@@ -177,6 +191,12 @@ class RoundArtifacts:
             )
         return f"models/best is round {self.best['round']} ({success}server action MSE {self.best['action-mse']:.4g}{start})"
 
+    @staticmethod
+    def starting_line(evaluation: dict) -> str:
+        """Round 0's line: how the model the run starts from does on the server's evaluation."""
+        success = f"success {evaluation['success-rate']:.0%} in the simulator, " if "success-rate" in evaluation else ""
+        return f"Round 0 (the starting model): {success}server action MSE {evaluation['action-mse']:.4g}"
+
     def checkpoint_bundle(self) -> PolicyBundle:
         """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
         stats = aggregate_stats(list(self.client_stats.values())) if self.client_stats else self.bundle.stats
@@ -187,6 +207,7 @@ class RoundArtifacts:
         """``Round 3/10: 4 clients trained, train loss 0.53, server action MSE 61.5, 12.3 s/round, about 1m 26s left``."""
         record = self.history.round(server_round)
         trained = sum("train" in c and "error" not in c["train"] for c in record["clients"].values())
+        refused = sum("error" in c.get("train", {}) for c in record["clients"].values())
         loss = record.get("aggregate-train", {}).get("train-loss")
         mse = record.get("server-evaluate", {}).get("action-mse")
         success = record.get("server-evaluate", {}).get("success-rate")
@@ -194,7 +215,8 @@ class RoundArtifacts:
         left = round(per_round * (self.run.num_server_rounds - server_round))
         return (
             f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
-            f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
+            + (f"{refused} refused, " if refused else "")
+            + f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
             + ("" if success is None else f"success {success:.0%} in the simulator, ")
             + f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"

@@ -19,7 +19,7 @@ from flwr.serverapp import Grid, ServerApp
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from loguru import logger
 
-from zk0 import app_fingerprint
+from zk0 import app_fingerprint, stopping
 from zk0.aggregation import ValidatingStrategy, array_signature
 from zk0.artifacts import History, new_run_dir, write_json
 from zk0.config import RunConfig, from_run_config
@@ -27,10 +27,11 @@ from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
 from zk0.internals import is_simulation
-from zk0.logs import add_file_sink, setup_logging
+from zk0.logs import add_file_sink, prints_to_log, say, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, config_features, get_trainable, set_trainable
 from zk0.preflight import SIZED, check_federation
 from zk0.registry import Registry, load_registry
+from zk0.report import REPORT_FILE
 from zk0.resume import ResumePoint, find_resume_point
 from zk0.round_artifacts import RoundArtifacts
 from zk0.server_optimisers import make_strategy, restore_state
@@ -64,6 +65,7 @@ class ServerEvaluation:
         run = self.run
         metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
         if self.closed_loop:
+            stopping.check(server_round)
             self.videos.mkdir(parents=True, exist_ok=True)
             metrics |= self.closed_loop(self.bundle, self.videos / f"round_{server_round}.mp4")
         logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
@@ -78,14 +80,38 @@ def record_run_config(run: RunConfig, run_dir: Path, resumed: ResumePoint | None
     """Keep the run config with the run; a resumed run says which settings changed."""
     path = run_dir / "server" / "run_config.json"
     if resumed:
-        logger.info("Resuming {} after round {} (checkpoint {})", run_dir, resumed.round, resumed.checkpoint.name)
+        say("Resuming {} after round {} (checkpoint {})", run_dir, resumed.round, resumed.checkpoint.name)
         before = json.loads(path.read_text()) if path.is_file() else {}
         changed = {k: (before.get(k), v) for k, v in run.to_flat().items() if k != "resume-from" and before.get(k) != v}
         if changed:
             logger.warning("The resumed run differs from the original in {}", changed)
     else:
-        logger.info("Writing to {}", run_dir)
+        say("Writing to {}", run_dir)
     write_json(path, run.to_flat())
+
+
+def describe_run(run: RunConfig, registry: Registry, bundle: PolicyBundle) -> None:
+    """The console's header: who takes part, the model and where it trains, how long the run is."""
+    clients = ", ".join(f"{i} {e.name}" for i, e in enumerate(registry.clients))
+    say("{} clients: {}; the server evaluates on {}", len(registry.clients), clients, run.server_eval_dataset)
+    adapters = "" if run.peft == "none" else f" with {run.peft} adapters"
+    say(
+        "Model: {} SmolVLA{} ({:,} trainable parameters in {} tensors) on {}; server optimiser {}",
+        run.model,
+        adapters,
+        sum(p.numel() for p in bundle.policy.parameters() if p.requires_grad),
+        len(bundle.trainable_names),
+        bundle.device,
+        run.server_optimiser,
+    )
+    say(
+        "{} round{} x {} local steps (batch {}), evaluated every {}",
+        run.num_server_rounds,
+        "s" * (run.num_server_rounds != 1),
+        run.local_steps,
+        run.batch_size,
+        "round" if run.eval_frequency == 1 else f"{run.eval_frequency} rounds",
+    )
 
 
 def preflight(run: RunConfig, registry: Registry, simulation: bool) -> LeRobotDatasetMetadata:
@@ -109,6 +135,7 @@ def main(grid: Grid, context: Context) -> None:
     """Validate the config and every local dataset, build the global model, run the federation,
     write artifacts every round."""
     setup_logging("server")
+    stopping.watch()
     try:
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)
@@ -128,8 +155,10 @@ def main(grid: Grid, context: Context) -> None:
         )
         return
 
-    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    with prints_to_log("lerobot"):
+        bundle = build_policy(run, meta, entry, registry.model_cameras())
     initial = resumed.trainable(bundle) if resumed else get_trainable(bundle)
+    describe_run(run, registry, bundle)
     fingerprint = backbone_fingerprint(bundle)
     logger.info(
         "Global model: {} trainable tensors, backbone fingerprint {}; app {}",
@@ -190,10 +219,14 @@ def main(grid: Grid, context: Context) -> None:
             evaluate_fn=evaluation,
             timeout=run.phase_timeout,
         )
+    except stopping.RunStopped as err:
+        logger.warning("{}", err)  # Flower is ending the process: no traceback, no failure
+        return
     except Zk0Error as err:
         logger.error("zk0: {}", err)
         raise
     finally:
         evaluation.close()
         tracker.finish()
-    logger.info("Done: outputs in {}; {}.", run_dir, artifacts.summary())
+    say("Done in {:.0f} s: {}.", artifacts.elapsed(), artifacts.summary())
+    say("Report: {}", run_dir / REPORT_FILE)
