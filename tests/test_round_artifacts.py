@@ -29,7 +29,7 @@ def test_each_round_ends_with_a_line_a_person_reads(tmp_path, monkeypatch):
         "about 1m 30s left"
     )
     assert artifacts.progress(2) == (
-        "Round 2/4: 1 client trained, train loss -, server action MSE not evaluated, 35.0 s/round, about 1m 10s left"
+        "Round 2/4: 1 client trained, train loss -, server action MSE not evaluated, 40.0 s/round, about 1m 20s left"
     )
 
 

@@ -60,6 +60,7 @@ class RoundArtifacts:
         self.unsaved: tuple[ArrayRecord, dict] | None = None  # the best model, until written to models/best
         self.push = can_push(run)
         self.started = time.perf_counter()
+        self.last_end = self.started  # when the latest round's line was written
 
     def record_clients(
         self,
@@ -204,14 +205,17 @@ class RoundArtifacts:
         return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
 
     def progress(self, server_round: int) -> str:
-        """``Round 3/10: 4 clients trained, train loss 0.53, server action MSE 61.5, 12.3 s/round, about 1m 26s left``."""
+        """``Round 3/10: 4 clients trained, train loss 0.53, server action MSE 61.5, 12.3 s/round, about 1m 26s left``
+        (the time left at the latest round's pace)."""
         record = self.history.round(server_round)
         trained = sum("train" in c and "error" not in c["train"] for c in record["clients"].values())
         refused = sum("error" in c.get("train", {}) for c in record["clients"].values())
         loss = record.get("aggregate-train", {}).get("train-loss")
         mse = record.get("server-evaluate", {}).get("action-mse")
         success = record.get("server-evaluate", {}).get("success-rate")
-        per_round = (time.perf_counter() - self.started) / (server_round - self.first_round + 1)
+        # The latest round's time: the first also builds every client, and would inflate an average.
+        now = time.perf_counter()
+        per_round, self.last_end = now - self.last_end, now
         left = round(per_round * (self.run.num_server_rounds - server_round))
         return (
             f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
