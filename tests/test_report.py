@@ -185,3 +185,18 @@ def test_every_round_rewrites_the_report(tmp_path):
     write_report(run_dir, history, config, {"round": 1, "action-mse": 300.123456}, 3)
     assert sorted(p.name for p in run_dir.iterdir()) == ["clients", REPORT_FILE, "server"]
     assert (run_dir / REPORT_FILE).read_text() != first
+
+
+def test_rollout_videos_of_the_best_and_the_latest_round_are_linked_beside_it(tmp_path):
+    """With closed-loop evaluation the report shows the best and the latest round's rollouts,
+    linked by a path relative to the report (the videos stay in server/videos/)."""
+    run_dir = tmp_path / "run"
+    history, config = a_run(run_dir)
+    videos = run_dir / "server" / "videos"
+    videos.mkdir()
+    for number in (0, 1, 2):
+        (videos / f"round_{number}.mp4").write_bytes(b"\x00\x00\x00\x18ftypmp42")
+    page = Tables()
+    page.feed(write_report(run_dir, history, config, {"round": 1, "action-mse": 300.123456}, 3).read_text())
+    assert page.loads == ["server/videos/round_1.mp4", "server/videos/round_2.mp4"]
+    assert all((run_dir / src).is_file() for src in page.loads)
