@@ -60,12 +60,22 @@ def client_dir(run_dir: Path, index: int) -> Path:
     return run_dir / "clients" / f"client_{index}"
 
 
-def write_json(path: Path, data: dict) -> None:
-    """Write JSON atomically (temp file + rename): readers never see half a file."""
+def write_text(path: Path, text: str) -> None:
+    """Write a file atomically (temp file + rename): readers never see half of it."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as tmp:
-        json.dump(data, tmp, indent=2, sort_keys=True)
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False, encoding="utf-8") as tmp:
+        tmp.write(text)
     os.replace(tmp.name, path)
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Write JSON atomically."""
+    write_text(path, json.dumps(data, indent=2, sort_keys=True))
+
+
+def clients_trained(record: dict) -> int:
+    """How many clients' training counted in a round's record (a refused one carries its ``error``)."""
+    return sum("train" in c and "error" not in c["train"] for c in record["clients"].values())
 
 
 @dataclass

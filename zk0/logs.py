@@ -55,7 +55,9 @@ def for_a_person(record: dict) -> bool:
     each), and any library's error (a run that fails says why); not the rest of Flower's, Ray's
     or lerobot's lines."""
     level = record["level"].no
-    return record["extra"].get("console", False) or level >= logging.ERROR or (_own(record) and level >= logging.WARNING)
+    if record["extra"].get("console", False) or level >= logging.ERROR:
+        return True
+    return _own(record) and level >= logging.WARNING
 
 
 def console_format(record: dict) -> str:

@@ -12,13 +12,12 @@ dataset names and refusal sentences come from users.
 from __future__ import annotations
 
 import base64
-import os
-import tempfile
 from pathlib import Path
 
 from jinja2 import Environment, StrictUndefined
+from markupsafe import Markup
 
-from zk0.artifacts import CHARTS, SIM_CHARTS
+from zk0.artifacts import CHARTS, SIM_CHARTS, clients_trained, write_text
 
 REPORT_FILE = "report.html"
 ROLLOUT = (
@@ -128,8 +127,6 @@ def _num(value: float | int | None) -> str:
 
 def _cell(value: float | int | None):
     """A table cell with its figure as printed and, in ``data-value``, as in the JSON."""
-    from markupsafe import Markup
-
     if value is None:
         return Markup("<td>-</td>")
     return Markup('<td data-value="{}">{}</td>').format(repr(value), _num(value))
@@ -146,7 +143,7 @@ def round_row(record: dict) -> dict:
     server = record.get("server-evaluate", {})
     values = {
         "round": record["round"],
-        "trained": sum("train" in c and "error" not in c["train"] for c in clients),
+        "trained": clients_trained(record),
         "refused": sum("error" in c.get(phase, {}) for c in clients for phase in ("train", "evaluate")),
         "train-loss": record.get("aggregate-train", {}).get("train-loss"),
         "client-mse": record.get("aggregate-evaluate", {}).get("action-mse"),
@@ -199,11 +196,12 @@ def _charts(server_dir: Path) -> list[dict]:
 
 def _videos(run_dir: Path, best: dict | None, last: int) -> list[dict]:
     """The best and the latest round's rollout videos, linked by relative path (they stay beside it)."""
+    rounds = {last: "latest round"} | ({best["round"]: "best round"} if best else {})  # one video if both
     videos = []
-    for title, number in (("best round", best["round"] if best else None), ("latest round", last)):
-        path = run_dir / "server" / "videos" / f"round_{number}.mp4"
-        if number is not None and path.is_file() and all(v["src"] != path.relative_to(run_dir).as_posix() for v in videos):
-            videos.append({"title": f"Round {number} ({title})", "src": path.relative_to(run_dir).as_posix()})
+    for number, title in sorted(rounds.items()):
+        src = f"server/videos/round_{number}.mp4"
+        if (run_dir / src).is_file():
+            videos.append({"title": f"Round {number} ({title})", "src": src})
     return videos
 
 
@@ -211,7 +209,8 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
     """The report's HTML for ``run_dir``, from its history (as ``metrics_history.json`` has it)."""
     rounds = [round_row(r) for r in history["rounds"]]
     last = rounds[-1]["round"] if rounds else 0
-    status = f"Round {last} of {num_rounds}" + (" (finished)." if last >= num_rounds else "; the run goes on or was stopped.")
+    ending = " (finished)." if last >= num_rounds else "; the run goes on or was stopped."
+    status = f"Round {last} of {num_rounds}{ending}"
     best_path = run_dir / "models" / "best"
     columns = [{"key": k, "title": t} for k, t in ROUND_COLUMNS if any(r["cells"][k] is not None for r in rounds)]
     return _TEMPLATE.render(
@@ -232,8 +231,5 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
 def write_report(run_dir: Path, history: dict, config: dict, best: dict | None, num_rounds: int) -> Path:
     """Write ``report.html`` in ``run_dir`` atomically (a browser open on it never sees half a page)."""
     path = run_dir / REPORT_FILE
-    html = render(run_dir, history, config, best, num_rounds)
-    with tempfile.NamedTemporaryFile("w", dir=run_dir, suffix=".tmp", delete=False, encoding="utf-8") as tmp:
-        tmp.write(html)
-    os.replace(tmp.name, path)
+    write_text(path, render(run_dir, history, config, best, num_rounds))
     return path

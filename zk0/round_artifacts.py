@@ -24,7 +24,7 @@ from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0 import stopping
-from zk0.artifacts import ROUND_FILE, History, save_checkpoint
+from zk0.artifacts import ROUND_FILE, History, clients_trained, save_checkpoint
 from zk0.config import RunConfig
 from zk0.hub import can_push, publish
 from zk0.logs import say
@@ -208,7 +208,7 @@ class RoundArtifacts:
         """``Round 3/10: 4 clients trained, train loss 0.53, server action MSE 61.5, 12.3 s/round, about 1m 26s left``
         (the time left at the latest round's pace)."""
         record = self.history.round(server_round)
-        trained = sum("train" in c and "error" not in c["train"] for c in record["clients"].values())
+        trained = clients_trained(record)
         refused = sum("error" in c.get("train", {}) for c in record["clients"].values())
         loss = record.get("aggregate-train", {}).get("train-loss")
         mse = record.get("server-evaluate", {}).get("action-mse")
