@@ -73,6 +73,21 @@ def test_tiny_backbone_builds_a_small_smolvla(registry):
     assert total < 1_000_000
 
 
+@pytest.mark.parametrize(("model", "tokens"), [("tiny", 4), ("tiny-128", 64)])
+def test_each_offline_model_sees_a_camera_as_so_many_visual_tokens(registry, model, tokens):
+    """The 64 px tiny model sees a camera as 4 tokens (a 3 cm cube is about 3 of its pixels); the
+    simulator's tiny-128 model as 64, from 128 px frames in 8 px patches."""
+    from zk0.config import RunConfig
+    from zk0.data import open_metadata
+    from zk0.policy import build_policy
+
+    entry = registry.clients[0]
+    bundle = build_policy(RunConfig(model=model), open_metadata(entry), entry, registry.model_cameras())
+    size = bundle.policy.config.resize_imgs_with_padding
+    embedded = bundle.policy.model.vlm_with_expert.embed_image(torch.zeros(1, 3, *size))
+    assert embedded.shape[:2] == (1, tokens)
+
+
 def test_stale_asset_is_regenerated(tmp_path):
     first = ensure_dataset("synth-so100-eval", tmp_path, episodes=1)
     marker = first / "meta" / "info.json"
@@ -101,8 +116,10 @@ def test_bad_asset_requests_fail_with_one_sentence(tmp_path, call, needle):
 def test_cli_assets_prints_paths_and_rejects_bad_names(tmp_path, capsys):
     from zk0.cli import main
 
-    assert main(["assets", "--cache-dir", str(tmp_path), "--only", "tiny-smolvlm"]) == 0
-    assert str(tmp_path / "backbones" / "tiny-smolvlm") in capsys.readouterr().out
+    assert main(["assets", "--cache-dir", str(tmp_path), "--only", "tiny-smolvlm", "tiny-smolvlm-128"]) == 0
+    printed = capsys.readouterr().out
+    assert str(tmp_path / "backbones" / "tiny-smolvlm") in printed
+    assert str(tmp_path / "backbones" / "tiny-smolvlm-128") in printed
     assert main(["assets", "--cache-dir", str(tmp_path), "--only", "synth-nope"]) == 2
     assert "'synth-nope'" in capsys.readouterr().err
 

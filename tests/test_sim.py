@@ -107,6 +107,22 @@ def test_recorded_demonstrations_pass_preflight_and_train(tmp_path):
     assert metrics["num-examples"] == 4 and np.isfinite(metrics["train-loss"])
 
 
+def test_the_sim_learning_benchmark_trains_centrally_and_rolls_out_along_the_way(tmp_path):
+    """`python -m zk0.bench sim-learning`'s loop: pooled training of tiny-128, a rollout after every
+    `every` steps in the server's conditions, each with its rates and its first episode's video."""
+    from zk0.bench.sim_learning import rollout_rows
+
+    for name in SIM_SPECS:
+        ensure_dataset(name)
+    run = from_run_config(
+        {"registry": REGISTRY, "server-eval-dataset": "sim-so101-eval", "model": "tiny-128", "batch-size": 2}
+    )
+    [row] = rollout_rows(run, steps=2, every=2, episodes=1, videos=tmp_path)
+    assert row["steps"] == 2 and np.isfinite(row["train-loss"]) and row["step-time"] > 0
+    assert 0.0 <= row["success-rate"] <= row["lifted-rate"] <= 1.0 and 1 <= row["episode-length"] <= 300
+    assert (tmp_path / "steps_2.mp4").stat().st_size > 0
+
+
 def test_sim_evaluation_needs_a_simulated_server_set():
     with pytest.raises(ConfigError, match="'sim-eval-episodes' = 3.*server-eval-dataset='synth-so100-eval'"):
         from_run_config({"sim-eval-episodes": 3})
@@ -150,7 +166,7 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     with local_federation(tmp_path / "flwr-home") as flower_env:
         log = flwr_run(
             flower_env,
-            f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 "
+            f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 model='tiny-128' "
             f"num-server-rounds=1 local-steps=2 batch-size=2 eval-batches=1 output-dir='{out}'",
             cpu_federation(num_supernodes=2, actors=1),
         )

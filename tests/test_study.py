@@ -93,7 +93,7 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     with that set's processors; the start in the server's only; the targets computed from it."""
     from zk0.bench.study import closed_loop_all, evaluation_sets, sim_summary, study_run
 
-    args = argparse.Namespace(rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2)
+    args = argparse.Namespace(rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128")
     registry_path = "configs/sim-registry.toml"
     registry = load_registry(registry_path)
     run = study_run(args, registry_path)

@@ -13,7 +13,15 @@ from flwr.common.config import flatten_dict, parse_config_args
 from tqdm import tqdm
 
 from zk0 import deploy, machine
-from zk0.assets import TINY_BACKBONE, AssetError, default_cache_root, ensure_backbone, ensure_dataset
+from zk0.assets import (
+    BACKBONES,
+    OFFLINE_BACKBONES,
+    TINY_BACKBONE,
+    AssetError,
+    default_cache_root,
+    ensure_backbone,
+    ensure_dataset,
+)
 from zk0.assets.datasets import SPECS
 from zk0.certs import make_federation_certs
 from zk0.config import RunConfig, from_run_config
@@ -28,19 +36,22 @@ def _assets(args: argparse.Namespace) -> int:
     """(Re)generate the offline assets and print where each one is."""
     root = Path(args.cache_dir).expanduser() if args.cache_dir else default_cache_root()
     names = args.only or [TINY_BACKBONE, *(name for name, spec in SPECS.items() if not spec.benchmark_only)]
-    if args.run_config:  # and every dataset zk0 generates that this run's registry names
+    if args.run_config:  # and the backbone and every dataset zk0 generates that this run names
         run, _ = _merged_run(None, args.run_config)
-        names += [e.name for e in load_registry(run.registry).entries if e.synthetic and e.name not in names]
+        wanted = [OFFLINE_BACKBONES[run.model]] if run.model in OFFLINE_BACKBONES else []
+        wanted += [e.name for e in load_registry(run.registry).entries if e.synthetic]
+        names += [name for name in wanted if name not in names]
+    known = [*BACKBONES, *SPECS, *SIM_SPECS]
     for name in names:
-        if name != TINY_BACKBONE and name not in SPECS and name not in SIM_SPECS:
-            raise AssetError(f"Unknown asset {name!r}; expected one of {[TINY_BACKBONE, *SPECS, *SIM_SPECS]}.")
+        if name not in known:
+            raise AssetError(f"Unknown asset {name!r}; expected one of {known}.")
     paths = {}
     # One bar of zk0's own (shown once generating takes over a second); what the libraries print
     # while generating (FFmpeg's muxer, datasets' bars) goes to assets.log in the cache.
     with native_output_to(root / "assets.log") as console:
         for name in tqdm(names, desc="Offline assets", unit="asset", file=console, delay=1.0):
-            if name == TINY_BACKBONE:
-                paths[name] = ensure_backbone(root)
+            if name in BACKBONES:
+                paths[name] = ensure_backbone(root, kind=name)
             else:
                 paths[name] = ensure_dataset(name, root, seed=args.seed, episodes=args.episodes)
     for name, path in paths.items():
@@ -175,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     assets.add_argument("--seed", type=int, default=0, help="generator seed (default 0, what runs use)")
     assets.add_argument("--episodes", type=int, help="episodes per dataset (default: each dataset's own)")
     assets.add_argument(
-        "--only", nargs="+", metavar="NAME", help=f"only these assets: {TINY_BACKBONE} {' '.join([*SPECS, *SIM_SPECS])}"
+        "--only", nargs="+", metavar="NAME", help=f"only these assets: {' '.join([*BACKBONES, *SPECS, *SIM_SPECS])}"
     )
     assets.add_argument(
         "--run-config", action="append", default=[], help="also every generated dataset this run's registry names"

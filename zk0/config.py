@@ -21,7 +21,7 @@ from zk0.sim.tasks import SIM_SPECS
 DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
 WIRE_DTYPES = ("bfloat16", "float32")  # zk0.wire encodes them
-OFFLINE_MODELS = ("tiny", "full-size")  # built from a generated backbone with random weights (zk0.policy)
+OFFLINE_MODELS = ("tiny", "tiny-128", "full-size")  # built from a generated backbone with random weights (zk0.policy)
 PEFT_METHODS = ("none", "lora")  # zk0.adapters
 LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.adapters)
 SERVER_OPTIMISERS = ("fedavg", "fedavgm", "nesterov", "fedadam", "fedyogi")  # zk0.server_optimisers

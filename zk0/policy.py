@@ -23,7 +23,7 @@ from lerobot.utils.feature_utils import dataset_to_policy_features
 from transformers import AutoConfig
 
 from zk0 import adapters
-from zk0.assets import FULL_SIZE_BACKBONE, TINY_BACKBONE, default_cache_root, ensure_backbone
+from zk0.assets import OFFLINE_BACKBONES, default_cache_root, ensure_backbone
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.errors import Zk0Error
 from zk0.registry import DatasetEntry
@@ -32,10 +32,6 @@ from zk0.registry import DatasetEntry
 # benchmarking kernels in every new process; "default" measured 0.157 s/step at batch 64 on an
 # H100 against 0.288 s eager (docs/performance.md).
 COMPILE_MODE = "default"
-
-# The generated backbone (random weights) each offline run-config `model` value is built on.
-OFFLINE_BACKBONES = dict(zip(OFFLINE_MODELS, (TINY_BACKBONE, FULL_SIZE_BACKBONE), strict=True))
-
 
 class PolicyError(Zk0Error):
     """A dataset or model that cannot feed the global policy; one sentence naming it."""

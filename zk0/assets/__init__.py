@@ -19,14 +19,18 @@ from pathlib import Path
 from filelock import FileLock
 
 from zk0.assets.datasets import SPECS
+from zk0.config import OFFLINE_MODELS
 from zk0.errors import Zk0Error
 from zk0.sim.tasks import RECORDER_VERSION, SIM_SPECS
 
 GENERATOR_VERSION = 1
 MANIFEST = "zk0_manifest.json"
 TINY_BACKBONE = "tiny-smolvlm"
+TINY_128_BACKBONE = "tiny-smolvlm-128"
 FULL_SIZE_BACKBONE = "smolvlm2-500m-random"
-BACKBONES = (TINY_BACKBONE, FULL_SIZE_BACKBONE)
+BACKBONES = (TINY_BACKBONE, TINY_128_BACKBONE, FULL_SIZE_BACKBONE)
+# The generated backbone (random weights) each offline run-config `model` value is built on.
+OFFLINE_BACKBONES = dict(zip(OFFLINE_MODELS, BACKBONES, strict=True))
 
 
 class AssetError(Zk0Error):
@@ -81,7 +85,8 @@ def _manifest_matches(target: Path, manifest: dict) -> bool:
 
 
 def ensure_backbone(root: Path | None = None, kind: str = TINY_BACKBONE) -> Path:
-    """A generated SmolVLM backbone dir (tiny, or SmolVLM2-500M-shaped), built if missing or stale."""
+    """A generated SmolVLM backbone dir (tiny, tiny with 128 px cameras, or SmolVLM2-500M-shaped), built if
+    missing or stale."""
     if kind not in BACKBONES:
         raise AssetError(f"Unknown backbone {kind!r}; expected one of {list(BACKBONES)}.")
     root = _writable_root(root or default_cache_root())
@@ -91,9 +96,10 @@ def ensure_backbone(root: Path | None = None, kind: str = TINY_BACKBONE) -> Path
 
 def _build_backbone(out: Path, kind: str) -> None:
     # transformers and lerobot load only to build an asset: checking that one is there stays fast.
-    from zk0.assets.backbone import SMOLVLM2_500M, TINY, build_backbone
+    from zk0.assets.backbone import SMOLVLM2_500M, TINY, TINY_128, build_backbone
 
-    build_backbone(out, {TINY_BACKBONE: TINY, FULL_SIZE_BACKBONE: SMOLVLM2_500M}[kind])
+    shapes = {TINY_BACKBONE: TINY, TINY_128_BACKBONE: TINY_128, FULL_SIZE_BACKBONE: SMOLVLM2_500M}
+    build_backbone(out, shapes[kind])
 
 
 def generated_spec(name: str):

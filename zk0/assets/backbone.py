@@ -54,6 +54,10 @@ class BackboneShape:
 
 # Well under a million parameters as SmolVLA: trains on a CPU in milliseconds per step.
 TINY = BackboneShape(64, 128, 2, 4, 2, 16, VOCAB_SIZE, 32, 64, 1, 2, 64, 16, 2)
+# The tiny model with eyes for the simulator: 128 px cameras in 8 px patches give 64 visual tokens per
+# camera (the tiny one's 64 px in 16 px patches give 4, where a 3 cm cube is about 3 pixels: a policy
+# trained on it does not find the cube; docs/simulation.md has the measurements).
+TINY_128 = BackboneShape(64, 128, 2, 4, 2, 16, VOCAB_SIZE, 64, 128, 1, 2, 128, 8, 2)
 # SmolVLM2-500M-Video-Instruct's shape with random weights: realistic GPU figures without the Hub.
 SMOLVLM2_500M = BackboneShape(960, 2560, 32, 15, 5, 64, 49280, 768, 3072, 12, 12, 512, 16, 4)
 

@@ -5,7 +5,20 @@ from __future__ import annotations
 import sys
 
 from zk0.assets import ensure_all
-from zk0.bench import deployment, exchange, gpu, inputs, learning, memory, robust, round, sim, step, study
+from zk0.bench import (
+    deployment,
+    exchange,
+    gpu,
+    inputs,
+    learning,
+    memory,
+    robust,
+    round,
+    sim,
+    sim_learning,
+    step,
+    study,
+)
 
 BENCHMARKS = {
     "learning": learning.main,
@@ -19,13 +32,14 @@ BENCHMARKS = {
     "gpu": gpu.main,
     "sim": sim.main,
     "inputs": inputs.main,
+    "sim-learning": sim_learning.main,
 }
 
 
 def usage() -> str:
     """Each benchmark with the first line of its module's docstring."""
     lines = [
-        f"  {name:<11} {sys.modules[fn.__module__].__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items()
+        f"  {name:<13} {sys.modules[fn.__module__].__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items()
     ]
     return "usage: python -m zk0.bench <benchmark> [options] (--help for its options)\n\n" + "\n".join(lines)
 

@@ -7,7 +7,7 @@ sample's camera frames swapped for another sample's of the same batch; with the 
 swapped likewise. A policy that looks at the cube loses accuracy when frames are swapped; one
 whose error does not move has learnt nothing from the cameras' content.
 
-    python -m zk0.bench inputs [--registry configs/sim-registry.toml] [--steps 4000] [--lr 1e-3] [--json out.json]
+    python -m zk0.bench inputs [--registry configs/sim-registry.toml] [--model tiny-128] [--steps 4000] [--lr 1e-3] [--json out.json]
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import torch
 
 from zk0.bench.client import write_json
 from zk0.client import build_client
-from zk0.config import RunConfig
+from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data import eval_loader, open_evaluation, open_metadata
 from zk0.errors import OneSentenceParser, positive
 from zk0.policy import build_policy, set_trainable, snapshot
@@ -49,6 +49,7 @@ class Altered:
 def main(argv: list[str]) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench inputs", description=__doc__.splitlines()[0])
     parser.add_argument("--registry", default="configs/sim-registry.toml", help="whose clients and server set")
+    parser.add_argument("--model", default="tiny-128", choices=OFFLINE_MODELS)
     parser.add_argument("--steps", type=positive(int), default=4000, help="centralised training steps")
     parser.add_argument("--lr", type=positive(float), default=1e-3)
     parser.add_argument("--batch-size", type=positive(int), default=8)
@@ -58,8 +59,8 @@ def main(argv: list[str]) -> int:
     registry = load_registry(args.registry)
     server = next(e for e in registry.entries if e.role == "server")
     run = RunConfig(
-        registry=args.registry, server_eval_dataset=server.name, batch_size=args.batch_size, lr=args.lr,
-        local_steps=args.steps, eval_batches=args.eval_batches,
+        registry=args.registry, server_eval_dataset=server.name, model=args.model, batch_size=args.batch_size,
+        lr=args.lr, local_steps=args.steps, eval_batches=args.eval_batches,
     )
     cameras = registry.model_cameras()
     sessions = [build_client(run, entry, cameras, i) for i, entry in enumerate(registry.clients)]
@@ -70,8 +71,9 @@ def main(argv: list[str]) -> int:
     set_trainable(judge, snapshot(bundle))
     split = open_evaluation(server, meta, judge.policy.config, run)
     loader = eval_loader(split.evaluation, run)
-    figures = {"steps": args.steps, "train-loss": trained["train-loss"], "server": server.name}
-    print(f"centralised, {args.steps} steps on {len(sessions)} clients (train loss {trained['train-loss']:.3g}); "
+    figures = {"model": args.model, "steps": args.steps, "train-loss": trained["train-loss"], "server": server.name}
+    print(f"centralised {args.model}, {args.steps} steps on {len(sessions)} clients "
+          f"(train loss {trained['train-loss']:.3g}); "
           f"{server.name}'s held-out episodes:")
     for variant in VARIANTS:
         altered = replace(judge, preprocessor=Altered(judge.preprocessor, split.meta.camera_keys, variant, run.seed))

@@ -25,7 +25,7 @@ The ``sim`` setting trains on the simulated SO-101 owners' demonstrations (confi
 episodes) in the server's span of conditions and in each client's own: success, not only MSE.
 
     python -m zk0.bench study [--settings mild noniid sim] [--rounds 8] [--local-steps 20]
-        [--clients 4] [--lr 8e-3] [--federation-lr LR] [--federations FedProx FedAvg Nesterov ...]
+        [--clients 4] [--model tiny] [--lr 8e-3] [--federation-lr LR] [--federations FedProx FedAvg Nesterov ...]
         [--server-lr LR] [--server-momentum M] [--demos 30] [--sim-episodes 10]
         [--output-dir outputs/bench-study]
 """
@@ -48,7 +48,7 @@ from matplotlib.figure import Figure
 from zk0.assets import ensure_dataset
 from zk0.bench.learning import EVAL_ALL, federate
 from zk0.client import ClientSession, build_client
-from zk0.config import RunConfig
+from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data import eval_loader, open_evaluation, open_metadata
 from zk0.errors import OneSentenceParser, positive
 from zk0.policy import PolicyBundle, build_policy, set_trainable, snapshot
@@ -87,6 +87,7 @@ def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
         lr=args.lr,
         eval_batches=EVAL_ALL,
         registry=registry,
+        model=args.model,
         min_train_clients=args.clients,
     )
 
@@ -118,6 +119,7 @@ def federated_models(
             "server-eval-dataset": study_run(args, registry).server_eval_dataset,
             "eval-frequency": args.rounds,
             "lr": args.federation_lr,
+            "model": args.model,
         }
         history = federate(args, args.rounds, f"{setting}-{label.lower()}", **keys)
         if history is None:
@@ -343,6 +345,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=positive(int), default=8)
     parser.add_argument("--local-steps", type=positive(int), default=20)
     parser.add_argument("--batch-size", type=positive(int), default=8)
+    parser.add_argument("--model", default="tiny", choices=OFFLINE_MODELS, help="the offline model (sim: tiny-128)")
     parser.add_argument("--lr", type=positive(float), default=8e-3, help="every model's (the best tried for each)")
     parser.add_argument(
         "--federation-lr",
