@@ -84,17 +84,17 @@ def update_problem(arrays: ArrayRecord, expected: dict[str, tuple[tuple[int, ...
     return None
 
 
-def update_norm(update: ArrayRecord, current: ArrayRecord) -> float:
-    """How far an update moves the global model: the L2 norm of the difference, over every array."""
-    total = sum(np.sum(np.square(update[n].numpy() - current[n].numpy()), dtype=np.float64) for n in current)
+def update_norm(update: ArrayRecord, current: dict[str, np.ndarray]) -> float:
+    """How far an update moves the global model (``current``, decoded once per round): the L2 norm
+    of the difference, over every array."""
+    total = sum(np.sum(np.square(update[n].numpy() - start), dtype=np.float64) for n, start in current.items())
     return float(np.sqrt(total))
 
 
-def scaled_update(update: ArrayRecord, current: ArrayRecord, scale: float) -> ArrayRecord:
-    """``update`` with its change to the global model multiplied by ``scale``."""
+def scaled_update(update: ArrayRecord, current: dict[str, np.ndarray], scale: float) -> ArrayRecord:
+    """``update`` with its change to the global model (``current``, decoded) multiplied by ``scale``."""
     moved = {}
-    for name, array in current.items():
-        start = array.numpy()
+    for name, start in current.items():
         moved[name] = Array(np.asarray(start + scale * (update[name].numpy() - start), dtype=start.dtype))
     return ArrayRecord(moved)
 
@@ -262,12 +262,13 @@ class ValidatingStrategy(Strategy):
         the client: past the clip an update is not trusted, so it counts as a typical one, no more.
         Each reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1: untouched)."""
         key = self.inner.arrayrecord_key
-        norms = [update_norm(msg.content[key], self.current) for msg in valid]
+        current = {name: array.numpy() for name, array in self.current.items()}  # decoded once, not per client
+        norms = [update_norm(msg.content[key], current) for msg in valid]
         for i, msg in enumerate(valid):
             typical = statistics.median(norms[:i] + norms[i + 1 :]) if len(norms) > 1 else 0.0
             scale = typical / norms[i] if self.update_clip and 0 < typical * self.update_clip < norms[i] else 1.0
             if scale < 1:
-                msg.content[key] = scaled_update(msg.content[key], self.current, scale)
+                msg.content[key] = scaled_update(msg.content[key], current, scale)
                 logger.warning(
                     "Round {}: {}'s update is {:.3g}x the median of the others' ({:.4g} against {:.4g}), above "
                     "update-clip={:g}; scaled down to that median.",
