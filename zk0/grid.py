@@ -1,6 +1,6 @@
 """Flower's Grid, waiting for replies 0.2 s at a time instead of 3 s.
 
-Flower 1.41's ServerApp grid pushes a round's messages, then pulls replies and sleeps a fixed
+Flower's ServerApp grid (1.41, 1.42) pushes a round's messages, then pulls replies and sleeps a fixed
 3 s between pulls, so every phase of every round ends on the next multiple of 3 s: on a
 SuperNode federation that is 1.5 s per phase on average, more than the whole round's work on
 short rounds. ``PromptGrid`` does the same with Flower's own public ``push_messages`` and

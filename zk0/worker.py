@@ -1,6 +1,6 @@
 """The SuperNode's warm worker: the client stays built between messages of a run.
 
-Flower 1.41 runs every message a SuperNode receives in a fresh ``flwr-clientapp`` process.
+Flower (1.41, 1.42) runs every message a SuperNode receives in a fresh ``flwr-clientapp`` process.
 Building SmolVLA, opening the dataset and importing lerobot there for every message cost more
 than the local steps of a short round. So, on a SuperNode started by ``zk0 supernode`` (node
 config ``warm-worker = true``), the ClientApp stays a light proxy: the first message of a run
