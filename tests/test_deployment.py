@@ -187,3 +187,20 @@ def test_supernode_dry_run_shows_the_thread_settings_it_starts_with(tmp_path):
     for extra, expected in ((["--cpus", "1"], "ZK0_CPUS=1 OMP_NUM_THREADS=1"), ([], "ZK0_SUPERNODES=")):
         done = subprocess.run([*base, *extra, "--dry-run"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert done.returncode == 0 and done.stdout.startswith(expected), done.stdout + done.stderr
+        assert f"{sys.executable} -m zk0.supernode --superlink 127.0.0.1:1 --insecure" in done.stdout
+
+
+def test_zk0s_supernode_polls_instead_of_flowers_hard_coded_waits(monkeypatch):
+    """`python -m zk0.supernode` is Flower's SuperNode whose loop sleeps 0.5 s, not 3 s, between idle
+    polls of the SuperLink, and 0.05 s, not 0.5 s, between looks for its ClientApp's reply."""
+    from flwr.supernode import start_client_internal as loop
+
+    from zk0 import internals, supernode
+
+    monkeypatch.setattr(loop, "time", loop.time)  # this process's loop gets Flower's waits back afterwards
+    internals.shorten_supernode_waits(supernode.IDLE_POLL_S, supernode.REPLY_POLL_S)
+    slept = []
+    monkeypatch.setattr(time, "sleep", slept.append)
+    for wait in (3, 0.5, 2):
+        loop.time.sleep(wait)
+    assert slept == [0.5, 0.05, 2] and loop.time.monotonic is time.monotonic

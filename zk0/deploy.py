@@ -11,6 +11,7 @@ keeps its client built in a warm worker (``zk0.worker``) between messages.
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from loguru import logger
@@ -32,7 +33,7 @@ def _need(path: Path, what: str) -> str:
 def superlink_command(certs: Path | None, host: str, port: int, database: Path | None) -> list[str]:
     """``flower-superlink`` with TLS and SuperNode authentication (``certs`` None = insecure).
 
-    flwr 1.41 serves the Fleet API (SuperNodes), the Control API (``flwr`` CLI) and the
+    flwr 1.42 serves the Fleet API (SuperNodes), the Control API (``flwr`` CLI) and the
     ServerApp runtime API over HTTPS on one ``host:port``.
     """
     command = ["flower-superlink"]
@@ -63,8 +64,9 @@ def node_config(dataset: str, output_dir: Path, warm_worker: bool) -> str:
 def supernode_command(
     superlink: str, certs: Path | None, key: str | None, node_config: str, runtime_port: int
 ) -> list[str]:
-    """``flower-supernode`` for one robot owner: their node config, their key, the federation's CA."""
-    command = ["flower-supernode", "--superlink", superlink]
+    """Flower's SuperNode for one robot owner (their node config, their key, the federation's CA),
+    started as ``python -m zk0.supernode``: ``flower-supernode`` with shorter polls (zk0.supernode)."""
+    command = [sys.executable, "-m", "zk0.supernode", "--superlink", superlink]
     if certs is None:
         logger.warning(INSECURE_WARNING)
         command.append("--insecure")

@@ -9,20 +9,25 @@ reshapes one, instead of letting the frame cache or the LR schedule break quietl
 from __future__ import annotations
 
 import inspect
+import time
 from collections.abc import Callable
 from functools import partial
 from importlib.metadata import version
+from typing import TYPE_CHECKING
 
 from flwr.supercore.exit import add_exit_handler
 from flwr.superlink.grid import InMemoryGrid
-from lerobot.datasets.dataset_reader import DatasetReader
-from lerobot.datasets.lerobot_dataset import LeRobotDataset
-from torch.optim.lr_scheduler import LRScheduler
+from flwr.supernode import start_client_internal as supernode_loop
+
+if TYPE_CHECKING:  # lerobot and torch load where they are used: `python -m zk0.supernode` needs neither
+    from lerobot.datasets.dataset_reader import DatasetReader
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from torch.optim.lr_scheduler import LRScheduler
 
 
 def decode_videos(reader: DatasetReader, query_timestamps: dict[str, list[float]], episode: int) -> dict:
     """lerobot's own decoding of ``query_timestamps`` (camera -> timestamps) of one episode."""
-    return DatasetReader._query_videos(reader, query_timestamps, episode)
+    return type(reader)._query_videos(reader, query_timestamps, episode)
 
 
 def serve_videos_from(dataset: LeRobotDataset, query: Callable[[DatasetReader, dict, int], dict]) -> None:
@@ -58,8 +63,36 @@ def on_flower_exit(handler: Callable[[], None]) -> None:
     add_exit_handler(handler, run_before_force_exit=True)
 
 
+class _Waits:
+    """The ``time`` module as Flower's SuperNode loop sees it, with its hard-coded sleeps replaced."""
+
+    def __init__(self, waits: dict[float, float]):
+        self.waits = waits
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(self.waits.get(seconds, seconds))
+
+    def __getattr__(self, name: str):
+        return getattr(time, name)
+
+
+def shorten_supernode_waits(idle_s: float, reply_s: float) -> None:
+    """Make this process's Flower SuperNode poll the SuperLink every ``idle_s`` when it has no
+    message (Flower sleeps a hard-coded 3 s) and look for its ClientApp's reply every ``reply_s``
+    (0.5 s). Neither has a flag or variable; the loop's module-level ``time`` is replaced."""
+    supernode_loop.time = _Waits({3: idle_s, 0.5: reply_s})
+
+
+def supernode_waits() -> dict[float, float]:
+    """What this process's SuperNode loop sleeps instead of Flower's hard-coded waits ({} if unchanged)."""
+    return dict(getattr(supernode_loop.time, "waits", {}))
+
+
 def check() -> None:
     """Raise, naming the installed versions, if a private name above is gone or changed shape."""
+    from lerobot.datasets.dataset_reader import DatasetReader
+    from torch.optim.lr_scheduler import LRScheduler
+
     versions = f"lerobot {version('lerobot')}, torch {version('torch')}, flwr {version('flwr')}"
     problems = []
     query = getattr(DatasetReader, "_query_videos", None)
@@ -69,6 +102,9 @@ def check() -> None:
         problems.append("DatasetReader._return_uint8")
     if "_last_lr" not in inspect.getsource(LRScheduler.get_last_lr):
         problems.append("LRScheduler._last_lr behind get_last_lr()")
+    loop = inspect.getsource(supernode_loop)
+    if "\nimport time\n" not in loop or "time.sleep(3)" not in loop or "time.sleep(0.5)" not in loop:
+        problems.append("flwr.supernode.start_client_internal's `import time`, time.sleep(3) and time.sleep(0.5)")
     if "run_before_force_exit" not in inspect.signature(add_exit_handler).parameters:
         problems.append("flwr.supercore.exit.add_exit_handler(handler, run_before_force_exit=...)")
     if problems:
