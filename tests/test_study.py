@@ -117,3 +117,27 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     assert set(summary["other-clients"]) == {"local 0", "local 1"}
     if success["centralised"]["server"]["success-rate"] == 0:
         assert summary["vs-centralised"] == {"FedProx": None, "FedAvg": None}
+
+
+def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(capsys):
+    """The sim setting's result holds both summaries; the success lines come from the success one
+    (they once read the action-MSE summary, which has the same keys, and printed its ratio)."""
+    from zk0.bench.study import print_success, sim_summary
+
+    def rates(success: float) -> dict:
+        return {"success-rate": success, "lifted-rate": success}
+
+    success = {
+        "start": {"server": rates(0.0)},
+        "FedAvg": {"client 0": rates(0.1), "client 1": rates(0.3), "server": rates(0.1)},
+        "centralised": {"client 0": rates(0.2), "client 1": rates(0.2), "server": rates(0.4)},
+        "local 0": {"client 0": rates(0.5), "client 1": rates(0.0), "server": rates(0.0)},
+        "local 1": {"client 0": rates(0.2), "client 1": rates(0.6), "server": rates(0.0)},
+    }
+    mse_summary = {"vs-centralised": {"FedAvg": 1.176}, "federation-beats-every-local": {"FedAvg": False}}
+    result = {"success": success, "success-summary": sim_summary(success, clients=2), "summary": mse_summary}
+    print_success(result)
+    out = capsys.readouterr().out
+    assert "FedAvg / centralised, success in the server's conditions: 0.25 (target >= 0.9)" in out
+    # client 0's model in client 1's conditions: 0% against FedAvg's 30%; client 1's in client 0's: 20% against 10%
+    assert "FedAvg succeeds more than every local-only model in the conditions that client never saw: False" in out

@@ -254,7 +254,7 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     closed_loop = {}
     if setting in SIM_SETTINGS:
         success = closed_loop_all(models, columns, run, args.sim_episodes)
-        closed_loop = {"success": success, "summary": sim_summary(success, len(sessions))}
+        closed_loop = {"success": success, "success-summary": sim_summary(success, len(sessions))}
     return {
         **closed_loop,
         "registry": registry_path or "pyproject.toml",
@@ -311,7 +311,7 @@ def print_success(result: dict) -> None:
     for label, row in success.items():
         cells = [f"{row[c]['success-rate']:.0%} ({row[c]['lifted-rate']:.0%})" if c in row else "-" for c in columns]
         print(f"{label:<12}" + "".join(f"{cell:>13}" for cell in cells))
-    s = result["summary"]
+    s = result["success-summary"]
     for label, ratio in s["vs-centralised"].items():
         shown = "n/a (centralised 0%)" if ratio is None else f"{ratio:.2f}"
         print(f"{label} / centralised, success in the server's conditions: {shown} (target >= 0.9)")
