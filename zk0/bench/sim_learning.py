@@ -45,8 +45,9 @@ def rollout_rows(run: RunConfig, steps: int, every: int, episodes: int, videos: 
     rows, done, cpu = [], 0, time.process_time()
     try:
         while done < steps:
-            trained = trainer.fit(min(every, steps - done), mu=0.0, global_step=done)
-            done += min(every, steps - done)
+            chunk = min(every, steps - done)
+            trained = trainer.fit(chunk, mu=0.0, global_step=done)
+            done += chunk
             set_trainable(judge, snapshot(bundle))
             video = videos / f"steps_{done}.mp4" if videos else None
             rates = loop(judge, video)
