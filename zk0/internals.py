@@ -83,11 +83,6 @@ def shorten_supernode_waits(idle_s: float, reply_s: float) -> None:
     supernode_loop.time = _Waits({3: idle_s, 0.5: reply_s})
 
 
-def supernode_waits() -> dict[float, float]:
-    """What this process's SuperNode loop sleeps instead of Flower's hard-coded waits ({} if unchanged)."""
-    return dict(getattr(supernode_loop.time, "waits", {}))
-
-
 def check() -> None:
     """Raise, naming the installed versions, if a private name above is gone or changed shape."""
     from lerobot.datasets.dataset_reader import DatasetReader
