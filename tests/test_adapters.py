@@ -12,6 +12,7 @@ from lerobot.policies import make_policy
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from safetensors.torch import load_file
 
+from zk0.adapters import EXPERT_QV_TARGETS, SMALL_PROJECTIONS
 from zk0.artifacts import save_checkpoint
 from zk0.client import build_client
 from zk0.config import ConfigError, RunConfig, from_run_config
@@ -172,3 +173,22 @@ def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(s
     policy.eval()
     chunk = policy.predict_action_chunk(batch)
     assert chunk.shape == (4, policy.config.chunk_size, 6) and torch.isfinite(chunk).all()
+
+
+def test_small_projections_train_in_full_next_to_the_adapters(start, registry, tmp_path):
+    """lora-full-modules: SmolVLA's five small projections travel whole next to the expert's
+    adapters, and the merged checkpoint carries them as trained."""
+    entry = registry.clients[0]
+    run = lora_run(start, **{"lora-targets": EXPERT_QV_TARGETS, "lora-full-modules": SMALL_PROJECTIONS})
+    bundle = build_client(run, entry, registry.model_cameras()).bundle
+    whole = [n for n in bundle.trainable_names if ".lora_" not in n]
+    assert {n.split(".")[-4] for n in whole} == set(SMALL_PROJECTIONS.split(","))  # ...state_proj.modules_to_save...
+    assert all(".lm_expert." in n for n in bundle.trainable_names if ".lora_" in n), "adapters on the expert only"
+    trained = {n: t + 0.05 for n, t in trainable_tensors(bundle).items()}
+    set_trainable(bundle, trained)
+    (tmp_path / "server").mkdir()
+    checkpoint = save_checkpoint(bundle, tmp_path, 1, {})
+    merged = load_file(checkpoint / "model.safetensors")
+    for name in whole:
+        key = name.removeprefix("base_model.model.").replace(".modules_to_save.default", "")
+        assert torch.equal(merged[key], trained[name]), key

@@ -32,6 +32,11 @@ from zk0.config import RunConfig
 from zk0.errors import Zk0Error
 
 ADAPTER_DIR = "adapter"  # inside a checkpoint: PEFT's adapter_config.json + adapter_model.safetensors
+# SmolVLA's default LoRA targets are the action expert's q/v projections and five small projections
+# between the expert and the robot (state, action and time embeddings). The alternative measured in
+# docs/learning.md: adapters on the expert's q/v only, those five trained in full next to them.
+EXPERT_QV_TARGETS = r"model\.vlm_with_expert\.lm_expert\..*\.(q|v)_proj"
+SMALL_PROJECTIONS = "state_proj,action_in_proj,action_out_proj,action_time_mlp_in,action_time_mlp_out"
 
 
 def overrides(run: RunConfig) -> dict:

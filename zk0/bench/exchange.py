@@ -7,8 +7,8 @@ time, and the server's decode + FedAvg time for ``--clients`` updates (Flower's 
 ``aggregate_arrayrecords``), against the whole state dict the seed project sent.
 
 With ``--peft lora`` the model is first saved as a pretrained starting point (lerobot adapts only
-pretrained weights) and the bytes of LoRA's adapters, in both averaging modes, are measured
-next to the same weights trained in full.
+pretrained weights) and the bytes of LoRA's adapters, in both averaging modes and with SmolVLA's
+small projections trained in full next to them, are measured next to the same weights trained in full.
 
     python -m zk0.bench exchange [--full-size] [--peft lora] [--clients 4] [--repeat 3] [--json out.json]
 """
@@ -24,6 +24,7 @@ import torch
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
+from zk0.adapters import EXPERT_QV_TARGETS, SMALL_PROJECTIONS
 from zk0.bench.client import starting_checkpoint
 from zk0.config import RunConfig
 from zk0.data import open_metadata
@@ -63,7 +64,8 @@ def measure(tensors: dict[str, torch.Tensor], wire_dtype: str, clients: int, rep
 
 def variants(args) -> list[tuple[str, RunConfig]]:
     """What to measure: the trainable weights, and with ``--peft lora`` the same starting weights
-    trained in full next to LoRA's two averaging modes (zk0.adapters)."""
+    trained in full next to LoRA's two averaging modes and adapters with SmolVLA's small
+    projections trained in full (zk0.adapters)."""
     model = "full-size" if args.full_size else "tiny"
     if args.peft == "none":
         return [("full", RunConfig(model=model, device="cpu"))]
@@ -73,6 +75,13 @@ def variants(args) -> list[tuple[str, RunConfig]]:
         ("full", RunConfig(model=start, device="cpu")),
         ("lora b", RunConfig(model=start, device="cpu", lora_average="b", **lora)),
         ("lora ab", RunConfig(model=start, device="cpu", lora_average="ab", **lora)),
+        (
+            "lora b+proj",
+            RunConfig(
+                model=start, device="cpu", lora_average="b", lora_targets=EXPERT_QV_TARGETS,
+                lora_full_modules=SMALL_PROJECTIONS, **lora,
+            ),
+        ),
     ]
 
 

@@ -5,9 +5,8 @@ datasets, tiny SmolVLA on the CPU) for several rounds, then prints the server's 
 MSE on its own evaluation dataset after every round next to the MSE of always predicting
 the clients' mean action.
 
-With ``--peft lora`` it compares LoRA with training in full instead: a short full federation
-gives both a common pretrained start, then the full federation and LoRA in both averaging
-modes (zk0.adapters) run the same rounds and steps from it.
+With ``--peft lora`` it compares LoRA with training in full instead, federated and centralised,
+from a common pretrained start (zk0.bench.lora).
 
     python -m zk0.bench learning [--rounds 20] [--local-steps 25] [--json out.json]
     python -m zk0.bench learning --peft lora [--warmup-rounds 10] [--rounds 10] [--lora-lr 2e-2]
@@ -104,50 +103,6 @@ def mean_action_check(args) -> int:
     return 0
 
 
-def lora_check(args) -> int:
-    """LoRA against training in full, from a common pretrained start: a short full federation's
-    final checkpoint (adapters on the tiny random-weight backbone would start from nothing)."""
-    warmup = federate(args, args.warmup_rounds, "warmup")
-    if warmup is None:
-        return 1
-    start = str(Path(warmup["run-dir"]) / "models" / f"checkpoint_round_{args.warmup_rounds}")
-    lora = {"peft": "lora", "lora-rank": args.lora_rank, "lr": args.lora_lr}
-    variants = {
-        "full": {},
-        "lora b": {**lora, "lora-average": "b"},
-        "lora ab": {**lora, "lora-average": "ab"},
-    }
-    results = {}
-    for label, keys in variants.items():
-        history = federate(args, args.rounds, label.replace(" ", "-"), model=start, **keys)
-        if history is None:
-            return 1
-        rows = server_rows(history)
-        results[label] = {
-            "start-mse": rows[0]["action-mse"],
-            "final-mse": rows[-1]["action-mse"],
-            "final-policy-loss": rows[-1]["policy-loss"],
-            "bytes-per-direction": sent_bytes(history),
-            "wall-s": history["wall-s"],
-            "rows": rows,
-            "config": history["config"],
-        }
-    full = results["full"]["final-mse"]
-    print(
-        f"start: round {args.warmup_rounds} of a full federation, server action MSE {results['full']['start-mse']:.2f}; "
-        f"then {args.rounds} rounds x {args.local_steps} steps x {args.clients} clients each"
-    )
-    print(f"{'variant':>8} {'final MSE':>10} {'vs full':>8} {'policy loss':>12} {'bytes/direction':>16} {'wall s':>7}")
-    for label, r in results.items():
-        print(
-            f"{label:>8} {r['final-mse']:>10.2f} {r['final-mse'] / full:>8.3f} {r['final-policy-loss']:>12.4f} "
-            f"{r['bytes-per-direction']:>16,} {r['wall-s']:>7.1f}"
-        )
-    if args.json:
-        Path(args.json).write_text(json.dumps({"warmup-rounds": args.warmup_rounds, "results": results}, indent=2))
-    return 0
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = OneSentenceParser(prog="python -m zk0.bench learning", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=20)
@@ -167,7 +122,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", default="outputs/bench-learning")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
-    return lora_check(args) if args.peft == "lora" else mean_action_check(args)
+    if args.peft == "lora":
+        from zk0.bench.lora import lora_check  # it builds on this module's federations
+
+        return lora_check(args)
+    return mean_action_check(args)
 
 
 if __name__ == "__main__":
