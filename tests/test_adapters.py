@@ -175,6 +175,19 @@ def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(s
     assert chunk.shape == (4, policy.config.chunk_size, 6) and torch.isfinite(chunk).all()
 
 
+@pytest.mark.e2e
+def test_a_federation_with_targets_that_match_nothing_says_so_in_one_sentence(start, tmp_path):
+    """The ServerApp builds the global model before round 1: lerobot's refusal reaches the log as one sentence."""
+    with local_federation(tmp_path / "flwr-home") as env:
+        log = flwr_run(
+            env,
+            f"peft='lora' lora-targets='no_such_module' model='{start}' output-dir='{tmp_path / 'outputs'}'",
+            cpu_federation(num_supernodes=2, actors=1),
+        )
+    assert "zk0: lerobot cannot add LoRA adapters with these lora-* keys: " in log, log[-3000:]
+    assert "Done in " not in log
+
+
 def test_small_projections_train_in_full_next_to_the_adapters(start, registry, tmp_path):
     """lora-full-modules: SmolVLA's five small projections travel whole next to the expert's
     adapters, and the merged checkpoint carries them as trained."""

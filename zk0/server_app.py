@@ -12,6 +12,8 @@ rounds, and ``RoundArtifacts`` (zk0.round_artifacts) writes what each round leav
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord
@@ -130,21 +132,29 @@ def preflight(run: RunConfig, registry: Registry, simulation: bool) -> LeRobotDa
     return report.server_meta
 
 
+@contextmanager
+def refusals_in_one_sentence() -> Iterator[None]:
+    """A refusal of the user's input (a ``Zk0Error``) logged as its one sentence, before Flower's
+    own report of the failure, which shows only that the ServerApp raised."""
+    try:
+        yield
+    except Zk0Error as err:
+        logger.error("zk0: {}", err)
+        raise
+
+
 @app.main()
 def main(grid: Grid, context: Context) -> None:
     """Validate the config and every local dataset, build the global model, run the federation,
     write artifacts every round."""
     setup_logging("server")
     stopping.watch()
-    try:
+    with refusals_in_one_sentence():
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)
         resumed = find_resume_point(run.resume_from) if run.resume_from else None
         meta = preflight(run, registry, simulation=is_simulation(grid))
         run_dir = resumed.run_dir if resumed else new_run_dir(run.output_dir)
-    except Zk0Error as err:
-        logger.error("zk0: {}", err)  # the one sentence, before Flower's own report of the failure
-        raise
     entry = registry.get(run.server_eval_dataset)
     add_file_sink(run_dir / "server" / "server.log", "server")
     record_run_config(run, run_dir, resumed)
@@ -155,7 +165,7 @@ def main(grid: Grid, context: Context) -> None:
         )
         return
 
-    with prints_to_log("lerobot"):
+    with refusals_in_one_sentence(), prints_to_log("lerobot"):  # e.g. lora-targets that match no module
         bundle = build_policy(run, meta, entry, registry.model_cameras())
     initial = resumed.trainable(bundle) if resumed else get_trainable(bundle)
     describe_run(run, registry, bundle)

@@ -60,7 +60,8 @@ def federate(args, rounds: int, name: str, **keys) -> dict | None:
         "wire-dtype": args.wire_dtype,
         **keys,
     }
-    run_config = " ".join(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
+    # Strings as TOML basic strings (JSON's escaping): a regex's backslashes reach the run config as typed.
+    run_config = " ".join(f"{k}={json.dumps(v)}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
     started = time.perf_counter()
     history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, f"bench: {name}")
     if history is not None:
