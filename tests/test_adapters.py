@@ -12,10 +12,9 @@ from lerobot.policies import make_policy
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from safetensors.torch import load_file
 
-from zk0.adapters import EXPERT_QV_TARGETS, SMALL_PROJECTIONS
 from zk0.artifacts import save_checkpoint
 from zk0.client import build_client
-from zk0.config import ConfigError, RunConfig, from_run_config
+from zk0.config import LORA_FULL_MODULES, ConfigError, RunConfig, from_run_config
 from zk0.data import open_metadata, prepare_batch
 from zk0.errors import Zk0Error
 from zk0.policy import backbone_fingerprint, build_policy, set_trainable, trainable_tensors
@@ -31,6 +30,13 @@ def start(tmp_path_factory, registry):
     entry = registry.clients[0]
     bundle = build_policy(RunConfig(device="cpu"), open_metadata(entry), entry, registry.model_cameras())
     return save_checkpoint(bundle, tmp_path_factory.mktemp("start"), 0, {})
+
+
+def merged_key(name: str) -> str:
+    """The plain policy's tensor a trained one lands in when merged: an adapted layer's weight, or
+    the projection trained in full itself."""
+    name = name.removeprefix("base_model.model.")
+    return name.split(".lora_")[0] + ".weight" if ".lora_" in name else name.replace(".modules_to_save.default", "")
 
 
 def lora_run(start, **keys) -> RunConfig:
@@ -66,7 +72,7 @@ def test_targets_that_match_no_module_are_refused(start, registry):
 def test_every_party_wraps_identically_and_only_adapters_train(start, registry, average, travels):
     """Two clients on different datasets: same frozen base and adapter start (one fingerprint), and a
     round of local steps changes the travelling adapter tensors and nothing else."""
-    run = lora_run(start, **{"lora-average": average})
+    run = lora_run(start, **{"lora-average": average, "lora-full-modules": ""})  # every target adapted
     clients = [build_client(run, entry, registry.model_cameras(), i) for i, entry in enumerate(registry.clients[:2])]
     a, b = (c.bundle for c in clients)
     assert a.trainable_names == b.trainable_names
@@ -123,8 +129,7 @@ def test_checkpoint_is_a_plain_lerobot_policy_with_the_adapters_merged(start, re
     base = load_file(start / "model.safetensors")
     merged = load_file(checkpoint / "model.safetensors")
     changed = {k for k in base if not torch.equal(base[k], merged[k])}
-    adapted = {n.removeprefix("base_model.model.").split(".lora_")[0] + ".weight" for n in trained}
-    assert changed == adapted, "exactly the adapted layers' weights changed"
+    assert changed == {merged_key(n) for n in trained}, "exactly the adapted layers' and projections' weights changed"
 
     adapter = json.loads((checkpoint / "adapter" / "adapter_config.json").read_text())
     assert adapter["r"] == run.lora_rank and adapter["peft_type"] == "LORA"
@@ -151,7 +156,7 @@ def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(s
     entry = registry.clients[0]
     adapted = build_policy(lora_run(start), open_metadata(entry), entry, registry.model_cameras())
     adapters = trainable_tensors(adapted)
-    assert all(".lora_B." in name for name in adapters)
+    assert all(".lora_B." in name or ".modules_to_save." in name for name in adapters)
     for record in history["rounds"]:
         assert record["global-arrays"] == {"tensors": len(adapters), "bytes": encode(adapters, "float32").count_bytes()}
     for client in history["rounds"][-1]["clients"].values():
@@ -189,13 +194,12 @@ def test_a_federation_with_targets_that_match_nothing_says_so_in_one_sentence(st
 
 
 def test_small_projections_train_in_full_next_to_the_adapters(start, registry, tmp_path):
-    """lora-full-modules: SmolVLA's five small projections travel whole next to the expert's
-    adapters, and the merged checkpoint carries them as trained."""
+    """The default lora-full-modules: SmolVLA's five small projections travel whole next to the
+    expert's adapters (not adapted themselves), and the merged checkpoint carries them as trained."""
     entry = registry.clients[0]
-    run = lora_run(start, **{"lora-targets": EXPERT_QV_TARGETS, "lora-full-modules": SMALL_PROJECTIONS})
-    bundle = build_client(run, entry, registry.model_cameras()).bundle
+    bundle = build_client(lora_run(start), entry, registry.model_cameras()).bundle
     whole = [n for n in bundle.trainable_names if ".lora_" not in n]
-    assert {n.split(".")[-4] for n in whole} == set(SMALL_PROJECTIONS.split(","))  # ...state_proj.modules_to_save...
+    assert {n.split(".")[-4] for n in whole} == set(LORA_FULL_MODULES.split(","))  # ...state_proj.modules_to_save...
     assert all(".lm_expert." in n for n in bundle.trainable_names if ".lora_" in n), "adapters on the expert only"
     trained = {n: t + 0.05 for n, t in trainable_tensors(bundle).items()}
     set_trainable(bundle, trained)
@@ -203,5 +207,4 @@ def test_small_projections_train_in_full_next_to_the_adapters(start, registry, t
     checkpoint = save_checkpoint(bundle, tmp_path, 1, {})
     merged = load_file(checkpoint / "model.safetensors")
     for name in whole:
-        key = name.removeprefix("base_model.model.").replace(".modules_to_save.default", "")
-        assert torch.equal(merged[key], trained[name]), key
+        assert torch.equal(merged[merged_key(name)], trained[name]), name

@@ -3,8 +3,11 @@
 With ``peft = "lora"`` every party wraps the same pretrained SmolVLA with lerobot's
 ``wrap_with_peft`` (SmolVLA's default targets: the action expert's q/v projections and the
 state/action/time projections), seeded, so the frozen base and the adapters' initialisation
-are bit-identical everywhere and the backbone fingerprint covers both. The trainable
-tensors, and so what travels and what FedProx anchors, are then the adapters only:
+are bit-identical everywhere and the backbone fingerprint covers both. By default
+(``lora-full-modules``) the five small state/action/time projections are trained in full
+instead of adapted (PEFT's ``modules_to_save``): docs/learning.md measured them closing
+LoRA's gap to training in full at ~4 MB per round for full-size SmolVLA. The trainable
+tensors, and so what travels and what FedProx anchors, are the adapters and those projections:
 
 - ``lora-average = "b"`` (the default): A stays frozen at its shared seeded start and only B
   is trained and averaged. The average of the clients' ``B_i·A`` is then exactly
@@ -15,7 +18,8 @@ tensors, and so what travels and what FedProx anchors, are then the adapters onl
 docs/learning.md has the measurements behind the default. A checkpoint holds the adapters
 merged into the base (``merge_and_unload``): a plain lerobot pretrained-model directory that
 ``SmolVLAPolicy.from_pretrained`` and ``lerobot-rollout`` load as they load any other, with
-the adapters alone in PEFT's own format under ``adapter/`` (what a resumed run continues from).
+the adapters (and the projections trained in full) in PEFT's own format under ``adapter/``
+(what a resumed run continues from).
 """
 
 from __future__ import annotations
@@ -32,11 +36,6 @@ from zk0.config import RunConfig
 from zk0.errors import Zk0Error
 
 ADAPTER_DIR = "adapter"  # inside a checkpoint: PEFT's adapter_config.json + adapter_model.safetensors
-# SmolVLA's default LoRA targets are the action expert's q/v projections and five small projections
-# between the expert and the robot (state, action and time embeddings). The alternative measured in
-# docs/learning.md: adapters on the expert's q/v only, those five trained in full next to them.
-EXPERT_QV_TARGETS = r"model\.vlm_with_expert\.lm_expert\..*\.(q|v)_proj"
-SMALL_PROJECTIONS = "state_proj,action_in_proj,action_out_proj,action_time_mlp_in,action_time_mlp_out"
 
 
 def overrides(run: RunConfig) -> dict:

@@ -190,7 +190,7 @@ def save_checkpoint(
     try:
         adapters.merged(bundle.policy).save_pretrained(staging)
         if adapters.is_adapted(bundle.policy):
-            bundle.policy.save_pretrained(staging / adapters.ADAPTER_DIR)  # PEFT's format: the adapters alone
+            bundle.policy.save_pretrained(staging / adapters.ADAPTER_DIR)  # PEFT's format: adapters, full modules
         bundle.preprocessor.save_pretrained(staging)
         bundle.postprocessor.save_pretrained(staging)
         for client, stats in client_stats.items():

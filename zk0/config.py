@@ -24,6 +24,9 @@ WIRE_DTYPES = ("bfloat16", "float32")  # zk0.wire encodes them
 OFFLINE_MODELS = ("tiny", "tiny-128", "full-size")  # built from a generated backbone with random weights (zk0.policy)
 PEFT_METHODS = ("none", "lora")  # zk0.adapters
 LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.adapters)
+# SmolVLA's small state, action and time projections: by default trained in full next to the adapters
+# rather than adapted (PEFT's modules_to_save; docs/learning.md measured why).
+LORA_FULL_MODULES = "state_proj,action_in_proj,action_out_proj,action_time_mlp_in,action_time_mlp_out"
 SERVER_OPTIMISERS = ("fedavg", "fedavgm", "nesterov", "fedadam", "fedyogi")  # zk0.server_optimisers
 
 
@@ -75,7 +78,7 @@ class RunConfig:
     lora_rank: int = 16
     lora_alpha: float = 32.0
     lora_targets: str = ""  # a regex of module names; "" = SmolVLA's own default targets
-    lora_full_modules: str = ""  # comma-separated modules trained in full next to the adapters (PEFT modules_to_save)
+    lora_full_modules: str = LORA_FULL_MODULES  # comma-separated, trained in full next to the adapters; "" = none
     lora_average: str = "b"  # b: A frozen at its seeded start, B trained and averaged; ab: both trained and averaged
     sim_eval_episodes: int = 0  # closed-loop episodes in the simulator per evaluated round (zk0.sim); 0 = off
 

@@ -24,7 +24,6 @@ import torch
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
-from zk0.adapters import EXPERT_QV_TARGETS, SMALL_PROJECTIONS
 from zk0.bench.client import starting_checkpoint
 from zk0.config import RunConfig
 from zk0.data import open_metadata
@@ -73,15 +72,9 @@ def variants(args) -> list[tuple[str, RunConfig]]:
     lora = {"peft": "lora", "lora_rank": args.lora_rank}
     return [
         ("full", RunConfig(model=start, device="cpu")),
-        ("lora b", RunConfig(model=start, device="cpu", lora_average="b", **lora)),
-        ("lora ab", RunConfig(model=start, device="cpu", lora_average="ab", **lora)),
-        (
-            "lora b+proj",
-            RunConfig(
-                model=start, device="cpu", lora_average="b", lora_targets=EXPERT_QV_TARGETS,
-                lora_full_modules=SMALL_PROJECTIONS, **lora,
-            ),
-        ),
+        ("lora b", RunConfig(model=start, device="cpu", lora_average="b", lora_full_modules="", **lora)),
+        ("lora ab", RunConfig(model=start, device="cpu", lora_average="ab", lora_full_modules="", **lora)),
+        ("lora b+proj", RunConfig(model=start, device="cpu", lora_average="b", **lora)),  # zk0's default
     ]
 
 

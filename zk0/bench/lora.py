@@ -5,9 +5,10 @@ point: a short full federation's final checkpoint. From it the same rounds x ste
 as federations through the real app (``flwr run``):
 
 - ``full``: the trainable weights trained in full;
-- ``lora b`` and ``lora ab``: LoRA on SmolVLA's default targets in both averaging modes (zk0.adapters);
-- ``lora b+proj``: adapters on the action expert's q/v only, with SmolVLA's five small state,
-  action and time projections trained in full next to them (PEFT's ``modules_to_save``);
+- ``lora b`` and ``lora ab``: LoRA on SmolVLA's default targets in both averaging modes (zk0.adapters),
+  every target adapted;
+- ``lora b+proj`` (zk0's default): adapters on the action expert's q/v, with SmolVLA's five small
+  state, action and time projections trained in full instead (``lora-full-modules``);
 
 and, at equal samples (zk0.bench.study's centralised baseline: one policy on every client's
 batches in turn), ``full``, ``lora b`` and ``lora b+proj`` trained centrally. The centralised
@@ -21,11 +22,10 @@ import argparse
 import json
 from pathlib import Path
 
-from zk0.adapters import EXPERT_QV_TARGETS, SMALL_PROJECTIONS
 from zk0.bench.learning import EVAL_ALL, federate, sent_bytes, server_rows
 from zk0.bench.study import SERVER, centralised, evaluate_all, evaluation_sets
 from zk0.client import build_client
-from zk0.config import RunConfig, from_run_config
+from zk0.config import LORA_FULL_MODULES, from_run_config
 from zk0.policy import snapshot
 from zk0.registry import load_registry
 
@@ -35,11 +35,9 @@ def variants(args: argparse.Namespace) -> dict[str, dict]:
     lora = {"peft": "lora", "lora-rank": args.lora_rank, "lr": args.lora_lr}
     return {
         "full": {},
-        "lora b": {**lora, "lora-average": "b"},
-        "lora ab": {**lora, "lora-average": "ab"},
-        "lora b+proj": {
-            **lora, "lora-average": "b", "lora-targets": EXPERT_QV_TARGETS, "lora-full-modules": SMALL_PROJECTIONS,
-        },
+        "lora b": {**lora, "lora-average": "b", "lora-full-modules": ""},
+        "lora ab": {**lora, "lora-average": "ab", "lora-full-modules": ""},
+        "lora b+proj": {**lora, "lora-average": "b", "lora-full-modules": LORA_FULL_MODULES},  # zk0's default
     }
 
 
