@@ -61,11 +61,21 @@ def test_lora_keys_are_refused_in_one_sentence(keys, sentence):
     assert str(err.value).endswith(".") and "\n" not in str(err.value)
 
 
-def test_targets_that_match_no_module_are_refused(start, registry):
+@pytest.mark.parametrize(
+    ("keys", "sentence"),
+    [
+        ({"lora-targets": r"no_such_module"}, "lerobot cannot add LoRA adapters with these lora-* keys: "),
+        (
+            {"lora-full-modules": "state_proj,state_prj"},
+            "Run-config key 'lora-full-modules' names 'state_prj', which matches no module of this SmolVLA; ",
+        ),
+    ],
+)
+def test_lora_keys_that_match_no_module_are_refused(start, registry, keys, sentence):
     entry = registry.clients[0]
-    run = lora_run(start, **{"lora-targets": r"no_such_module"})
-    with pytest.raises(Zk0Error, match="lerobot cannot add LoRA adapters with these lora-\\* keys"):
-        build_policy(run, open_metadata(entry), entry, registry.model_cameras())
+    with pytest.raises(Zk0Error) as err:
+        build_policy(lora_run(start, **keys), open_metadata(entry), entry, registry.model_cameras())
+    assert str(err.value).startswith(sentence) and "\n" not in str(err.value)
 
 
 @pytest.mark.parametrize(("average", "travels"), [("b", {"lora_B"}), ("ab", {"lora_A", "lora_B"})])

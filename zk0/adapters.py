@@ -32,15 +32,20 @@ from lerobot.policies import PreTrainedPolicy
 from peft import PeftModel, set_peft_model_state_dict
 from safetensors.torch import load_file
 
-from zk0.config import RunConfig
+from zk0.config import LORA_FULL_MODULES, RunConfig
 from zk0.errors import Zk0Error
 
 ADAPTER_DIR = "adapter"  # inside a checkpoint: PEFT's adapter_config.json + adapter_model.safetensors
 
 
+def full_modules(run: RunConfig) -> list[str]:
+    """The module names ``lora-full-modules`` lists."""
+    return [name.strip() for name in run.lora_full_modules.split(",") if name.strip()]
+
+
 def overrides(run: RunConfig) -> dict:
     """lerobot's ``PeftConfig`` fields (as its ``--peft.*`` options) from the run config."""
-    full = [name.strip() for name in run.lora_full_modules.split(",") if name.strip()]
+    full = full_modules(run)
     return {
         "method_type": "lora",
         "r": run.lora_rank,
@@ -57,11 +62,24 @@ def wrap(policy: PreTrainedPolicy, run: RunConfig) -> PeftModel:
         adapted = policy.wrap_with_peft(peft_cli_overrides=overrides(run))
     except ValueError as err:  # lerobot's and PEFT's refusals of a config (no module matches the targets, ...)
         raise Zk0Error(f"lerobot cannot add LoRA adapters with these lora-* keys: {err}") from None
+    _check_full_modules(adapted, full_modules(run))
     if run.lora_average == "b":
         for name, param in adapted.named_parameters():
             if ".lora_A." in name:
                 param.requires_grad_(False)
     return adapted
+
+
+def _check_full_modules(adapted: PeftModel, names: list[str]) -> None:
+    """PEFT silently skips a ``modules_to_save`` name that matches no module: refuse it instead, or a
+    misspelt name would leave that module frozen while the user believes it trains."""
+    trained = [name for name, _ in adapted.named_parameters() if ".modules_to_save." in name]
+    for module in names:
+        if not any(f".{module}.modules_to_save." in name for name in trained):
+            raise Zk0Error(
+                f"Run-config key 'lora-full-modules' names {module!r}, which matches no module of this SmolVLA; "
+                f"expected module names such as {LORA_FULL_MODULES!r}."
+            )
 
 
 def is_adapted(policy: torch.nn.Module) -> bool:
