@@ -132,18 +132,25 @@ fi
 port="${FLWR_LOCAL_SUPERLINK_HTTP_API_PORT:-39091}"
 own_superlink=0
 pgrep -f "flower-superlink.*--port $port" >/dev/null || own_superlink=1
-stop_superlink() {
+# The SuperLink and every process under it (the simulation, Ray's), listed before any of them is
+# signalled: once the simulation exits, Ray's processes are no longer under the SuperLink.
+superlink_tree() {
     [ "$own_superlink" = 1 ] || return 0
-    local tree=() pid
-    for pid in $(pgrep -f "flower-superlink.*--port $port"); do tree+=("$pid" $(descendants "$pid")); done
-    [ ${#tree[@]} -gt 0 ] || return 0
-    kill "${tree[@]}" 2>/dev/null || true
-    for _ in $(seq 50); do kill -0 "${tree[@]}" 2>/dev/null || return 0; sleep 0.2; done
-    kill -9 "${tree[@]}" 2>/dev/null || true
+    local pid
+    for pid in $(pgrep -f "flower-superlink.*--port $port"); do echo "$pid"; descendants "$pid"; done
 }
 descendants() {
     local child
     for child in $(pgrep -P "$1"); do echo "$child"; descendants "$child"; done
+}
+stop_processes() {
+    [ $# -gt 0 ] || return 0
+    kill "$@" 2>/dev/null || true
+    for _ in $(seq 50); do kill -0 "$@" 2>/dev/null || return 0; sleep 0.2; done
+    kill -9 "$@" 2>/dev/null || true
+}
+stop_superlink() {
+    stop_processes $(superlink_tree)
 }
 trap stop_superlink EXIT
 
@@ -157,10 +164,13 @@ interrupted() {
     zk0_log "Stopping run ${run_id:-(not started yet)}..."
     # The ServerApp's process first (it writes nothing once signalled: zk0.stopping), then Flower's
     # record of the run, then everything else.
+    local tree
+    tree="$(superlink_tree)"
     pkill -TERM -f "flwr-(simulation|serverapp) --runtime-api-address [^ ]*:$port( |\$)" || true
     [ -z "$run_id" ] || flwr stop "$run_id" local >/dev/null 2>&1 || true
     kill "$flwr_pid" 2>/dev/null || true
-    stop_superlink
+    stop_processes $tree
+    trap - EXIT
     run_dir="$(run_folder)"
     keep_log "$run_dir"
     if [ -z "$run_dir" ]; then

@@ -148,7 +148,6 @@ def main(grid: Grid, context: Context) -> None:
     """Validate the config and every local dataset, build the global model, run the federation,
     write artifacts every round."""
     setup_logging("server")
-    stopping.watch()
     with refusals_in_one_sentence():
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)
@@ -220,18 +219,18 @@ def main(grid: Grid, context: Context) -> None:
     }
     evaluation = ServerEvaluation(run, bundle, split, run_dir)
     try:
-        strategy.start(
-            grid=PromptGrid(grid),
-            initial_arrays=initial,
-            num_rounds=run.num_server_rounds - done,
-            train_config=ConfigRecord(dict(shared)),
-            evaluate_config=ConfigRecord(dict(shared)),
-            evaluate_fn=evaluation,
-            timeout=run.phase_timeout,
-        )
-    except stopping.RunStopped as err:
-        logger.warning("{}", err)  # Flower is ending the process: no traceback, no failure
-        return
+        with stopping.watching():
+            strategy.start(
+                grid=PromptGrid(grid),
+                initial_arrays=initial,
+                num_rounds=run.num_server_rounds - done,
+                train_config=ConfigRecord(dict(shared)),
+                evaluate_config=ConfigRecord(dict(shared)),
+                evaluate_fn=evaluation,
+                timeout=run.phase_timeout,
+            )
+    except stopping.RunStopped:
+        return  # Flower is ending the process, and it was said: no traceback, no failure
     except Zk0Error as err:
         logger.error("zk0: {}", err)
         raise
