@@ -55,12 +55,13 @@ def submitted_copy(root: Path) -> Path:
     return app
 
 
-def workers_under(root: Path) -> list[psutil.Process]:
-    """Warm workers started by this federation's SuperNodes (their working folder is under ``root``)."""
+def workers_under(root: Path, module: str = "zk0.worker") -> list[psutil.Process]:
+    """Warm workers (or ``module``'s processes) started by this federation's SuperNodes (their
+    working folder is under ``root``)."""
     found = []
     for proc in psutil.process_iter(["cmdline"]):
         try:
-            if "zk0.worker" in " ".join(proc.info["cmdline"] or []) and Path(proc.cwd()).is_relative_to(root):
+            if module in " ".join(proc.info["cmdline"] or []) and Path(proc.cwd()).is_relative_to(root):
                 found.append(proc)
         except psutil.Error:
             pass
@@ -102,6 +103,9 @@ def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federat
         log = client_log(federation, robot, run_dir, index)
         assert MARKER in log, "the SuperNode ran the submitted code, not its installed copy"
         assert "Round 3 train" in log and "Round 2 evaluate" in log
+        # Its ClientApps were forked from a process that had imported Flower (and forgot its own zk0).
+        assert workers_under(federation.root / robot, "zk0.forkserver"), "the SuperNode's fork server runs"
+        assert "fork server exited" not in federation.log(robot)
     assert not list(run_dir.glob("clients/*/client.log"))
     # The warm worker built each client once; later messages found it built and continued training.
     for number in (2, 3):

@@ -9,13 +9,17 @@ reshapes one, instead of letting the frame cache or the LR schedule break quietl
 from __future__ import annotations
 
 import inspect
+import subprocess
 import time
 from collections.abc import Callable
 from functools import partial
 from importlib.metadata import version
 from typing import TYPE_CHECKING
 
+from flwr.supercore.constant import TASK_TYPE_TO_COMMAND, TaskType
 from flwr.supercore.exit import add_exit_handler
+from flwr.supercore.inflatable import inflatable_utils
+from flwr.supercore.superexec.executor import subprocess_executor
 from flwr.superlink.grid import InMemoryGrid
 from flwr.supernode import start_client_internal as supernode_loop
 
@@ -83,6 +87,56 @@ def shorten_supernode_waits(idle_s: float, reply_s: float) -> None:
     supernode_loop.time = _Waits({3: idle_s, 0.5: reply_s})
 
 
+_PULLS = ("pull_objects", "pull_and_inflate_object_from_tree")
+PULL_RETRY_S = 0.05  # zk0's first retry; it doubles up to Flower's cap (10 s), so long uploads cost few requests
+
+
+def shorten_object_pull_backoff(initial_s: float = PULL_RETRY_S) -> None:
+    """Make this process retry an object that is not there yet after ``initial_s`` (doubling up to
+    Flower's cap), not Flower's hard-coded 1 s. A message is visible before its arrays are, so
+    the SuperNode and its ClientApp each found them missing and waited a second, every message."""
+    for name in _PULLS:
+        getattr(inflatable_utils, name).__kwdefaults__["initial_backoff"] = initial_s
+
+
+class _Starts:
+    """The ``subprocess`` module as one of Flower's modules sees it, where ``start(args, kwargs)``
+    may start the process named ``name`` its own way (True) or leave it to ``subprocess.Popen``."""
+
+    def __init__(self, name: str, start: Callable[[list[str], dict], bool]):
+        self.name, self.start = name, start
+
+    def Popen(self, args, **kwargs):  # noqa: N802 (subprocess's name)
+        if args[0] == self.name and self.start(list(args), kwargs):
+            return None  # Flower keeps no handle on the processes it starts here
+        return subprocess.Popen(args, **kwargs)
+
+    def __getattr__(self, name: str):
+        return getattr(subprocess, name)
+
+
+def start_superexec_as(command: list[str]) -> None:
+    """Make this process's SuperNode start ``command`` + Flower's arguments as its SuperExec,
+    instead of ``flower-superexec`` (isolation ``subprocess``; no flag names the command)."""
+
+    def start(args: list[str], kwargs: dict) -> bool:
+        subprocess.Popen([*command, *args[1:]], **kwargs)
+        return True
+
+    supernode_loop.subprocess = _Starts("flower-superexec", start)
+
+
+def start_clientapps_with(start: Callable[[list[str], bool], bool]) -> None:
+    """Make this process's SuperExec hand each ``flwr-clientapp`` command (and whether Flower
+    silences its output) to ``start``, which returns False to leave it to ``subprocess.Popen``.
+    Flower's subprocess executor has no hook for how a task's process starts."""
+
+    def start_clientapp(args: list[str], kwargs: dict) -> bool:
+        return start(args, kwargs.get("stdout") is subprocess.DEVNULL)
+
+    subprocess_executor.subprocess = _Starts(TASK_TYPE_TO_COMMAND[TaskType.CLIENT_APP], start_clientapp)
+
+
 def check() -> None:
     """Raise, naming the installed versions, if a private name above is gone or changed shape."""
     from lerobot.datasets.dataset_reader import DatasetReader
@@ -100,6 +154,16 @@ def check() -> None:
     loop = inspect.getsource(supernode_loop)
     if "\nimport time\n" not in loop or "time.sleep(3)" not in loop or "time.sleep(0.5)" not in loop:
         problems.append("flwr.supernode.start_client_internal's `import time`, time.sleep(3) and time.sleep(0.5)")
+    if "\nimport subprocess\n" not in loop or 'command = ["flower-superexec"]' not in loop or "subprocess.Popen(command)" not in loop:
+        problems.append('flwr.supernode.start_client_internal\'s `subprocess.Popen(["flower-superexec", ...])`')
+    executor = inspect.getsource(subprocess_executor)
+    if "\nimport subprocess\n" not in executor or "subprocess.Popen(args)" not in executor:
+        problems.append("flwr.supercore.superexec.executor.subprocess_executor's `subprocess.Popen(args)`")
+    if "stdout=subprocess.DEVNULL" not in executor or TASK_TYPE_TO_COMMAND[TaskType.CLIENT_APP] != "flwr-clientapp":
+        problems.append("SubprocessExecutor starting `flwr-clientapp` (output to subprocess.DEVNULL when suppressed)")
+    for name in _PULLS:
+        if "initial_backoff" not in (getattr(getattr(inflatable_utils, name, None), "__kwdefaults__", None) or {}):
+            problems.append(f"flwr.supercore.inflatable.inflatable_utils.{name}(..., *, initial_backoff=...)")
     if "run_before_force_exit" not in inspect.signature(add_exit_handler).parameters:
         problems.append("flwr.supercore.exit.add_exit_handler(handler, run_before_force_exit=...)")
     if problems:

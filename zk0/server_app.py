@@ -28,7 +28,7 @@ from zk0.config import RunConfig, from_run_config
 from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
-from zk0.internals import is_simulation
+from zk0.internals import is_simulation, shorten_object_pull_backoff
 from zk0.logs import add_file_sink, prints_to_log, say, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, config_features, get_trainable, set_trainable
 from zk0.preflight import SIZED, check_federation
@@ -148,6 +148,7 @@ def main(grid: Grid, context: Context) -> None:
     """Validate the config and every local dataset, build the global model, run the federation,
     write artifacts every round."""
     setup_logging("server")
+    shorten_object_pull_backoff()  # the replies' arrays, pulled from the SuperLink
     with refusals_in_one_sentence():
         run = from_run_config(dict(context.run_config))
         registry = load_registry(run.registry)

@@ -80,7 +80,7 @@ def message_breakdown(history: dict, steps: int) -> dict[str, dict[str, float]]:
                 worker_rest = m["worker-s"] - m["build-s"] - m["restore-s"] - work if m["worker-s"] else 0.0
                 own = m["handler-s"] - (m["worker-s"] or m["handler-s"])
                 for name, value in {
-                    "process start + imports": m["startup-s"],
+                    "ClientApp start, message in": m["startup-s"],
                     "client build": m["build-s"],
                     "state restore": m["restore-s"],
                     "local steps": steps_s,
