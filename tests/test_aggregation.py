@@ -10,6 +10,7 @@ from loguru import logger
 from zk0.aggregation import RunCannotTrain, ValidatingStrategy, array_signature, update_problem
 from zk0.server_optimisers import make_strategy
 from zk0.errors import REFUSED
+from zk0.wire import MANIFEST, PACKED, encode
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 
@@ -21,6 +22,9 @@ def arrays(a: float, b: float = 0.0, a_shape=(2, 3)) -> ArrayRecord:
 
 
 def reply(node: int, record: ArrayRecord, examples: int) -> Message:
+    """A client's train reply carrying ``record`` (per tensor, fp32 or already packed) as zk0 sends it."""
+    if set(record) != {PACKED, MANIFEST}:
+        record = encode(record.to_torch_state_dict(), "float32")
     instruction = Message(
         content=RecordDict({"arrays": arrays(0.0), "config": ConfigRecord({})}),
         dst_node_id=node,

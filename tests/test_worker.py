@@ -56,7 +56,7 @@ def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
     from zk0.client import build_client
     from zk0.config import RunConfig
     from zk0.policy import backbone_fingerprint, trainable_tensors
-    from zk0.wire import encode
+    from zk0.wire import decode, encode
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     shared = tmp_path / f"zk0-{os.getuid()}"
@@ -89,5 +89,5 @@ def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
     assert any("not a private folder" in w and "in the ClientApp process instead" in w for w in warnings)
     metrics = reply["metrics"]
     assert metrics["num-examples"] == 2 and metrics["worker-s"] == 0.0
-    assert set(reply["arrays"]) == set(server.bundle.trainable_names)
+    assert set(decode(reply["arrays"], run.wire_dtype)) == set(server.bundle.trainable_names)
     assert not list(shared.iterdir()), "no worker was started in the shared folder"

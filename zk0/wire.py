@@ -1,15 +1,24 @@
-"""Trainable weights on the wire: fp32, or bf16 as raw 16-bit patterns.
+"""Trainable weights on the wire: packed into one array, fp32 or bf16 as raw 16-bit patterns.
 
 Flower's ``ArrayRecord`` goes through NumPy, which has no bfloat16, so bf16 travels as the
 tensor's bit pattern viewed as int16 and is decoded back to fp32 on arrival. Both ends keep
 fp32 master weights: the server averages decoded fp32 values and sends the average rounded to
 bf16; a client loads that into its fp32 parameters. bf16 halves the bytes of every exchange.
+
+Every tensor is packed into one array, with a manifest of names and shapes beside it: Flower
+sends each array of a record as objects of its own, pulled one request at a time at every hop
+(SuperLink, SuperNode, ClientApp), so a message of a few hundred tensors cost as many round
+trips per hop; packed, it costs one per 5 MB chunk. The server decodes updates into one array
+per tensor before it validates and averages them.
 """
 
 from __future__ import annotations
 
+import json
+
+import numpy as np
 import torch
-from flwr.app import ArrayRecord
+from flwr.app import Array, ArrayRecord
 
 from zk0.errors import Zk0Error
 
@@ -21,20 +30,34 @@ KEEP_STATE = "keep-state"  # train config: a checkpoint round, so the client kee
 SHAPE = "shape:"  # config: the global model's state/action sizes, e.g. "shape:action" = [6]
 
 
+PACKED = "zk0:packed"  # every tensor's values, one after another, in the wire dtype
+MANIFEST = "zk0:manifest"  # UTF-8 JSON [[name, shape], ...]: how to cut PACKED back into tensors
+
+
 def encode(tensors: dict[str, torch.Tensor], wire_dtype: str) -> ArrayRecord:
-    """fp32 tensors -> an ArrayRecord in ``wire_dtype``."""
-    if wire_dtype == "float32":
-        return ArrayRecord({name: t.detach().to("cpu", torch.float32) for name, t in tensors.items()})
-    return ArrayRecord({name: t.detach().to("cpu", torch.bfloat16).view(torch.int16) for name, t in tensors.items()})
+    """fp32 tensors -> an ArrayRecord of one array in ``wire_dtype`` and its manifest."""
+    dtype = torch.float32 if wire_dtype == "float32" else torch.bfloat16
+    flat = [t.detach().to("cpu", dtype).reshape(-1) for t in tensors.values()]
+    packed = torch.cat(flat) if flat else torch.zeros(0, dtype=dtype)
+    if dtype == torch.bfloat16:
+        packed = packed.view(torch.int16)
+    manifest = json.dumps([[name, list(t.shape)] for name, t in tensors.items()]).encode()
+    return ArrayRecord({PACKED: Array(packed.numpy()), MANIFEST: Array(np.frombuffer(manifest, dtype=np.uint8))})
 
 
 def decode(arrays: ArrayRecord, wire_dtype: str) -> dict[str, torch.Tensor]:
-    """An ArrayRecord in ``wire_dtype`` -> fp32 tensors (one sentence if it is in another dtype)."""
+    """An ArrayRecord from ``encode`` -> fp32 tensors (one sentence if it is not what ``encode`` sends)."""
     expected = "int16" if wire_dtype == "bfloat16" else "float32"
-    for name, array in arrays.items():
-        if array.dtype != expected:
-            raise Zk0Error(f"Array {name!r} arrived as {array.dtype}; wire-dtype={wire_dtype} sends {expected}.")
-    tensors = arrays.to_torch_state_dict()
-    if wire_dtype == "float32":
-        return tensors
-    return {name: t.view(torch.bfloat16).float() for name, t in tensors.items()}
+    if set(arrays) != {PACKED, MANIFEST}:
+        raise Zk0Error(f"The weights arrived as arrays {sorted(arrays)[:3]}; zk0 sends {PACKED!r} and {MANIFEST!r}.")
+    if arrays[PACKED].dtype != expected:
+        raise Zk0Error(f"The weights arrived as {arrays[PACKED].dtype}; wire-dtype={wire_dtype} sends {expected}.")
+    manifest = json.loads(bytes(arrays[MANIFEST].numpy()))
+    packed = torch.from_numpy(arrays[PACKED].numpy())
+    if wire_dtype == "bfloat16":
+        packed = packed.view(torch.bfloat16).float()
+    sizes = [int(np.prod(shape)) for _, shape in manifest]
+    if sum(sizes) != packed.numel():
+        raise Zk0Error(f"The weights arrived with {packed.numel()} values; their manifest describes {sum(sizes)}.")
+    pieces = torch.split(packed, sizes)
+    return {name: piece.view(shape) for (name, shape), piece in zip(manifest, pieces, strict=True)}
