@@ -18,7 +18,7 @@ import json
 
 import numpy as np
 import torch
-from flwr.app import Array, ArrayRecord
+from flwr.app import ArrayRecord
 
 from zk0.errors import Zk0Error
 
@@ -37,12 +37,15 @@ MANIFEST = "zk0:manifest"  # UTF-8 JSON [[name, shape], ...]: how to cut PACKED 
 def encode(tensors: dict[str, torch.Tensor], wire_dtype: str) -> ArrayRecord:
     """fp32 tensors -> an ArrayRecord of one array in ``wire_dtype`` and its manifest."""
     dtype = torch.float32 if wire_dtype == "float32" else torch.bfloat16
-    flat = [t.detach().to("cpu", dtype).reshape(-1) for t in tensors.values()]
-    packed = torch.cat(flat) if flat else torch.zeros(0, dtype=dtype)
+    packed = torch.empty(sum(t.numel() for t in tensors.values()), dtype=dtype)
+    offset = 0
+    for tensor in tensors.values():  # converted as copied: one pass over the weights, not two
+        packed[offset : offset + tensor.numel()].copy_(tensor.detach().reshape(-1))
+        offset += tensor.numel()
     if dtype == torch.bfloat16:
         packed = packed.view(torch.int16)
     manifest = json.dumps([[name, list(t.shape)] for name, t in tensors.items()]).encode()
-    return ArrayRecord({PACKED: Array(packed.numpy()), MANIFEST: Array(np.frombuffer(manifest, dtype=np.uint8))})
+    return ArrayRecord({PACKED: packed, MANIFEST: torch.frombuffer(bytearray(manifest), dtype=torch.uint8)})
 
 
 def decode(arrays: ArrayRecord, wire_dtype: str) -> dict[str, torch.Tensor]:
