@@ -6,4 +6,4 @@ source "$(dirname "$0")/scripts/setup.sh"
 zk0_setup
 cd "$ZK0_ROOT"
 export HF_HUB_OFFLINE=1
-exec python -m pytest -n auto "$@"
+exec python -m pytest -n auto --dist worksteal "$@"

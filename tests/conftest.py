@@ -11,6 +11,9 @@ REPO = Path(__file__).resolve().parents[1]
 # One cache for the whole test session, shared by xdist workers (generation is locked).
 os.environ.setdefault("ZK0_CACHE", str(REPO / ".cache" / "zk0-tests"))
 os.environ["HF_HUB_OFFLINE"] = "1"
+# `-n auto` runs one xdist worker per core: one thread each, and in the processes they start
+# (the federations' servers and clients), or PyTorch's thread pools oversubscribe the cores.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("SVT_LOG", "1")
 
 
