@@ -64,7 +64,7 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     from zk0.bench.study import main
 
     argv = ["--settings", "noniid", "--clients", "2", "--rounds", "2", "--local-steps", "2"]
-    argv += ["--federations", "FedProx"]  # one federation: each is a whole `flwr run` (server optimisers: test_federation)
+    argv += ["--federations", "FedProx"]  # one: each is a whole `flwr run` (server optimisers: test_federation)
     assert main([*argv, "--output-dir", str(tmp_path), "--batch-size", "4"]) == 0
     out = capsys.readouterr().out
     result = json.loads((tmp_path / "study.json").read_text())["results"]["noniid"]

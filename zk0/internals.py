@@ -154,7 +154,8 @@ def check() -> None:
     loop = inspect.getsource(supernode_loop)
     if "\nimport time\n" not in loop or "time.sleep(3)" not in loop or "time.sleep(0.5)" not in loop:
         problems.append("flwr.supernode.start_client_internal's `import time`, time.sleep(3) and time.sleep(0.5)")
-    if "\nimport subprocess\n" not in loop or 'command = ["flower-superexec"]' not in loop or "subprocess.Popen(command)" not in loop:
+    superexec = ("\nimport subprocess\n", 'command = ["flower-superexec"]', "subprocess.Popen(command)")
+    if not all(part in loop for part in superexec):
         problems.append('flwr.supernode.start_client_internal\'s `subprocess.Popen(["flower-superexec", ...])`')
     executor = inspect.getsource(subprocess_executor)
     if "\nimport subprocess\n" not in executor or "subprocess.Popen(args)" not in executor:
@@ -162,7 +163,8 @@ def check() -> None:
     if "stdout=subprocess.DEVNULL" not in executor or TASK_TYPE_TO_COMMAND[TaskType.CLIENT_APP] != "flwr-clientapp":
         problems.append("SubprocessExecutor starting `flwr-clientapp` (output to subprocess.DEVNULL when suppressed)")
     for name in _PULLS:
-        if "initial_backoff" not in (getattr(getattr(inflatable_utils, name, None), "__kwdefaults__", None) or {}):
+        defaults = getattr(getattr(inflatable_utils, name, None), "__kwdefaults__", None) or {}
+        if "initial_backoff" not in defaults:
             problems.append(f"flwr.supercore.inflatable.inflatable_utils.{name}(..., *, initial_backoff=...)")
     if "run_before_force_exit" not in inspect.signature(add_exit_handler).parameters:
         problems.append("flwr.supercore.exit.add_exit_handler(handler, run_before_force_exit=...)")
