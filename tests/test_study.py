@@ -45,9 +45,9 @@ def test_centralised_training_takes_turns_and_normalises_each_batch_as_its_clien
     sessions = [build_client(run_config, entry, cameras, i) for i, entry in enumerate(registry.clients[:2])]
     pooled = pooled_over(sessions, run_config, cameras)
     pooled._next_batch()  # client 0's turn
-    raw = pooled._next_batch()  # client 1's
-    assert pooled.dataset_name == sessions[1].split.entry.name
-    prepared = pooled._prepare(copy.deepcopy(raw))
+    [(source, raw)] = pooled._next_batch()  # client 1's
+    assert source is sessions[1].trainer and pooled.dataset_name == sessions[1].split.entry.name
+    prepared = pooled._prepare([(source, copy.deepcopy(raw))])
     own = sessions[1].trainer._prepare(copy.deepcopy(raw))
     other = sessions[0].trainer._prepare(copy.deepcopy(raw))
     assert set(cameras) <= set(prepared), "client 1's cameras are renamed onto the model's"
@@ -57,6 +57,35 @@ def test_centralised_training_takes_turns_and_normalises_each_batch_as_its_clien
     pooled.fit(4, mu=0.0, global_step=0)
     batch = run_config.batch_size
     assert pooled.samples_from == {s.split.entry.name: 3 * batch for s in sessions}
+
+
+def test_a_wide_step_takes_a_batch_from_every_client_each_normalised_as_its_client_does(registry, run_config):
+    """The equal-steps baseline: one step, one batch from each client, joined after each client's own
+    preprocessing (batch = clients x batch)."""
+    cameras = registry.model_cameras()
+    sessions = [build_client(run_config, entry, cameras, i) for i, entry in enumerate(registry.clients[:2])]
+    first = sessions[0]
+    bundle = build_policy(run_config, first.split.meta, first.split.entry, cameras)
+    wide = PooledTrainer.over(bundle, [s.trainer for s in sessions], run_config, wide=True)
+    drawn = wide._next_batch()
+    assert [source for source, _ in drawn] == [s.trainer for s in sessions]
+    prepared = wide._prepare([(source, copy.deepcopy(batch)) for source, batch in drawn])
+    own = [source._prepare(copy.deepcopy(batch)) for source, batch in drawn]
+    batch = run_config.batch_size
+    assert len(prepared["action"]) == len(prepared["task"]) == 2 * batch
+    assert torch.equal(prepared["observation.state"], torch.cat([o["observation.state"] for o in own]))
+    assert not torch.equal(own[0]["observation.state"], sessions[1].trainer._prepare(drawn[0][1])["observation.state"])
+    # joined (frames resized, text padded), each sample's loss is what its client's batch alone gives
+    cfg, policy = bundle.policy.config, bundle.policy
+    noise, time = torch.randn(2 * batch, cfg.chunk_size, cfg.max_action_dim), torch.rand(2 * batch) * 0.9 + 0.05
+    with torch.no_grad():
+        together = policy.forward(prepared, noise=noise, time=time, reduction="none")[0]
+        apart = [policy.forward(o, noise=noise[i * batch : (i + 1) * batch], time=time[i * batch : (i + 1) * batch],
+                                reduction="none")[0] for i, o in enumerate(own)]
+    assert torch.allclose(together, torch.cat(apart), rtol=1e-4, atol=1e-6)
+
+    wide.fit(2, mu=0.0, global_step=0)
+    assert wide.samples_from == {s.split.entry.name: 3 * batch for s in sessions}
 
 
 @pytest.mark.e2e
@@ -69,7 +98,7 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     out = capsys.readouterr().out
     result = json.loads((tmp_path / "study.json").read_text())["results"]["noniid"]
     matrix = result["matrix"]
-    assert list(matrix) == ["start", "FedProx", "centralised", "local 0", "local 1"]
+    assert list(matrix) == ["start", "FedProx", "centralised", "local 0", "local 1", "equal steps"]
     for row in matrix.values():
         assert list(row) == ["client 0", "client 1", "server"]
         assert all(math.isfinite(v[k]) and v[k] > 0 for v in row.values() for k in ("action-mse", "policy-loss"))
@@ -80,8 +109,12 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     own = result["federations"]["FedProx"]["server-evaluate"]
     assert matrix["start"]["server"]["action-mse"] == pytest.approx(own[0]["action-mse"], rel=1e-6)
     assert matrix["FedProx"]["server"]["action-mse"] == pytest.approx(own[-1]["action-mse"], rel=1e-6)
-    assert matrix["local 0"] != matrix["local 1"] != matrix["centralised"]
+    assert matrix["local 0"] != matrix["local 1"] != matrix["centralised"] != matrix["equal steps"]
+    assert result["summary"]["equal-steps-vs-centralised"] == pytest.approx(
+        matrix["equal steps"]["server"]["action-mse"] / matrix["centralised"]["server"]["action-mse"]
+    )
     assert "FedProx / centralised, server action MSE: " in out
+    assert "FedProx / equal steps, server action MSE: " in out
     assert "better than every local-only model on the other clients' held-out episodes" in out
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

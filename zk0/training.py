@@ -23,7 +23,9 @@ from flwr.app import ArrayRecord
 from lerobot.configs.train import TrainPipelineConfig
 from lerobot.datasets import compute_sampler_state
 from lerobot.optim.factory import make_optimizer_and_scheduler
+from lerobot.policies.common.vla_utils import resize_with_pad
 from lerobot.scripts.lerobot_train import update_policy
+from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
 from loguru import logger
 from torch.utils.data import DataLoader
@@ -255,26 +257,33 @@ class PooledTrainer(LocalTrainer):
     the ones the federation uses; ``samples_from`` counts what each client contributed."""
 
     sources: list[LocalTrainer] = field(default_factory=list)
+    wide: bool = False  # each step one batch from every source, together (the batch is sources x batch size)
     samples_from: dict[str, int] = field(init=False, default_factory=dict)
     _source: LocalTrainer | None = field(init=False, default=None)
 
     @classmethod
-    def over(cls, bundle: PolicyBundle, sources: list[LocalTrainer], run: RunConfig) -> PooledTrainer:
+    def over(
+        cls, bundle: PolicyBundle, sources: list[LocalTrainer], run: RunConfig, wide: bool = False
+    ) -> PooledTrainer:
         """``bundle``'s policy trained on ``sources``' batches (the first source's split stands in
         for the loop's bookkeeping: epoch counts in lerobot's metrics tracker)."""
-        return cls(bundle, sources[0].split, sources[0].loader, run, sources=sources)
+        return cls(bundle, sources[0].split, sources[0].loader, run, sources=sources, wide=wide)
 
     @property
     def dataset_name(self) -> str:
         return self._source.dataset_name if self._source else self.split.entry.name
 
-    def _next_batch(self) -> dict:
-        self._source = self.sources[self.batches_seen % len(self.sources)]
+    def _next_batch(self) -> list[tuple[LocalTrainer, dict]]:
+        """The step's batches, each with the source whose processors prepare it."""
+        turn = self.sources if self.wide else [self.sources[self.batches_seen % len(self.sources)]]
         self.batches_seen += 1
-        batch = self._source._next_batch()
-        name = self._source.dataset_name
-        self.samples_from[name] = self.samples_from.get(name, 0) + len(batch["action"])
-        return batch
+        drawn = []
+        for self._source in turn:
+            batch = self._source._next_batch()
+            name = self._source.dataset_name
+            self.samples_from[name] = self.samples_from.get(name, 0) + len(batch["action"])
+            drawn.append((self._source, batch))
+        return drawn
 
     def _open_batches(self) -> None:
         """The clients' iterators (the pooled trainer has none of its own: opening the first
@@ -282,8 +291,54 @@ class PooledTrainer(LocalTrainer):
         for source in self.sources:
             source._open_batches()
 
-    def _prepare(self, batch: dict) -> dict:
-        return self._source._prepare(batch)
+    def _prepare(self, drawn: list[tuple[LocalTrainer, dict]]) -> dict:
+        prepared = [source._prepare(batch) for source, batch in drawn]
+        if len(prepared) > 1:  # clients' frames differ in size: give each the size SmolVLA resizes it to
+            prepared = [self._model_sized(batch) for batch in prepared]
+        return concat_batches(prepared, set(self.bundle.policy.config.input_features))
+
+    def _model_sized(self, batch: dict) -> dict:
+        """The batch's camera frames resized and padded as SmolVLA's own ``prepare_images`` does (the
+        same call, which then leaves them as they are), so the clients' batches can be joined."""
+        cfg = self.bundle.policy.config
+        if cfg.resize_imgs_with_padding is None:
+            return batch
+        width, height = cfg.resize_imgs_with_padding
+        return batch | {key: resize_with_pad(batch[key], height, width, pad_value=0) for key in cfg.image_features}
+
+
+def concat_batches(batches: list[dict], required: set[str]) -> dict:
+    """Preprocessed batches as one: tensors and lists joined along the batch, the rest from the first.
+
+    Keys only some batches have are left out: the datasets' own ``*_is_pad`` flags under their
+    original camera names, which the policy does not read; one of the policy's ``required`` inputs
+    missing from a batch is an error, not a camera silently dropped for every client."""
+    if len(batches) == 1:
+        return batches[0]
+    common = set.intersection(*(set(b) for b in batches))
+    if missing := sorted(required - common):
+        raise TrainingError(f"The pooled batches cannot be joined: some clients' batches lack {missing}.")
+    joined = {}
+    for key, value in batches[0].items():
+        if key not in common:
+            continue
+        if key in (OBS_LANGUAGE_TOKENS, OBS_LANGUAGE_ATTENTION_MASK):
+            joined[key] = _right_padded([b[key] for b in batches])
+        elif isinstance(value, torch.Tensor):
+            joined[key] = torch.cat([b[key] for b in batches])
+        elif isinstance(value, list):
+            joined[key] = [item for b in batches for item in b[key]]
+        else:
+            joined[key] = value
+    return joined
+
+
+def _right_padded(tokens: list[torch.Tensor]) -> torch.Tensor:
+    """Token ids or their attention mask, each batch padded on the right to the longest (SmolVLA pads
+    the text of a batch to its longest, ``pad_language_to``): the added places are masked out, so
+    what the model attends to is what each batch alone gives it."""
+    longest = max(t.shape[1] for t in tokens)
+    return torch.cat([torch.nn.functional.pad(t, (0, longest - t.shape[1])) for t in tokens])
 
 
 def peak_memory(device: torch.device) -> dict[str, float]:

@@ -11,6 +11,9 @@ On the same synthetic clients, model, batch size and number of samples, with one
   taking batches from each client's own loader in turn, each preprocessed with that client's
   own processors (camera mapping, normalisation), for as many steps as all clients take in the
   federation together (zk0.training.PooledTrainer);
+- **equal steps**: the same pooled training for only the federation's sequential steps (rounds x
+  local steps), each on a batch from every client together (batch = clients x batch): the same
+  samples again, so it splits "fewer sequential steps" from "federating";
 - **local-only**: each client alone, for the steps it takes in the federation;
 
 then evaluates every model, and the common starting model, on every client's held-out
@@ -64,6 +67,7 @@ SETTINGS = {
 }
 SIM_SETTINGS = ("sim",)
 SERVER = "server"
+EQUAL_STEPS = "equal steps"  # centralised at the federation's sequential steps, batch = clients x batch
 # The study's federations: label -> server-optimiser (only FedProx has a proximal term).
 FEDERATIONS = {
     "FedProx": "fedavg",
@@ -141,6 +145,23 @@ def centralised(
     trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled_run)
     trainer.fit(pooled_run.total_steps, mu=0.0, global_step=0)
     return snapshot(bundle), dict(trainer.samples_from)
+
+
+def centralised_equal_steps(
+    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str]
+) -> Weights:
+    """One policy trained for as many steps as the federation takes in sequence (rounds x local
+    steps), each on a batch from every client together (batch = clients x batch): the samples of
+    the other baselines in a quarter of the steps, so its gap to ``centralised`` is what fewer
+    sequential steps cost, and the federation's gap to it is what federating costs beyond that."""
+    wide_run = replace(run, batch_size=run.batch_size * len(sessions))
+    first = sessions[0]
+    bundle = build_policy(wide_run, first.split.meta, first.split.entry, cameras)
+    set_trainable(bundle, start)
+    PooledTrainer.over(bundle, [s.trainer for s in sessions], wide_run, wide=True).fit(
+        wide_run.total_steps, mu=0.0, global_step=0
+    )
+    return snapshot(bundle)
 
 
 def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
@@ -227,9 +248,13 @@ def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
     """The study's two targets: federation vs centralised on the server set, and federation vs each
     local-only model on the other clients' held-out episodes."""
     mse = {label: {c: v["action-mse"] for c, v in row.items()} for label, row in matrix.items()}
-    central = mse["centralised"][SERVER]
-    ratios = {label: mse[label][SERVER] / central for label in federations(mse)}
-    return {"vs-centralised": ratios, **against_local_only(mse, clients, lambda fed, local: fed < local)}
+    central, steps = mse["centralised"][SERVER], mse[EQUAL_STEPS][SERVER]
+    return {
+        "vs-centralised": {label: mse[label][SERVER] / central for label in federations(mse)},
+        "equal-steps-vs-centralised": steps / central,
+        "vs-equal-steps": {label: mse[label][SERVER] / steps for label in federations(mse)},
+        **against_local_only(mse, clients, lambda fed, local: fed < local),
+    }
 
 
 def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
@@ -250,6 +275,7 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     models["centralised"], seen = centralised(sessions, run, start, cameras)
     for session in sessions:
         models[f"local {session.index}"] = local_only(session, run, start)
+    models[EQUAL_STEPS] = centralised_equal_steps(sessions, run, start, cameras)  # last: the others' data order stays
     matrix = evaluate_all(models, columns, run)
     closed_loop = {}
     if setting in SIM_SETTINGS:
@@ -290,6 +316,10 @@ def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
     s = result["summary"]
     for label, ratio in s["vs-centralised"].items():
         print(f"{label} / centralised, server action MSE: {ratio:.3f} (target <= 1.5 at 8 rounds, 1.1 at 24)")
+    print(f"equal steps / centralised, server action MSE: {s['equal-steps-vs-centralised']:.3f} "
+          "(what a quarter of the sequential steps costs with the same samples)")
+    for label, ratio in s["vs-equal-steps"].items():
+        print(f"{label} / equal steps, server action MSE: {ratio:.3f} (what federating costs beyond that)")
     labels = federations(matrix)
     print(f"other clients' held-out episodes, mean action MSE (local-only vs {', '.join(labels)}):")
     for local, row in s["other-clients"].items():
