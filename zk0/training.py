@@ -254,7 +254,9 @@ class PooledTrainer(LocalTrainer):
     """Centralised training, the study's baseline (zk0.bench.study): one policy and one optimizer
     over every client's data pooled. Batches come in turn from each client's own loader and are
     preprocessed with that client's own processors, so the camera mapping and normalisation are
-    the ones the federation uses; ``samples_from`` counts what each client contributed."""
+    the ones the federation uses; ``samples_from`` counts what each client contributed. With
+    ``wide``, every step takes a batch from each client and trains on them together: the study's
+    equal-steps baseline, as many samples in fewer, larger steps."""
 
     sources: list[LocalTrainer] = field(default_factory=list)
     wide: bool = False  # each step one batch from every source, together (the batch is sources x batch size)
@@ -278,11 +280,12 @@ class PooledTrainer(LocalTrainer):
         turn = self.sources if self.wide else [self.sources[self.batches_seen % len(self.sources)]]
         self.batches_seen += 1
         drawn = []
-        for self._source in turn:
-            batch = self._source._next_batch()
-            name = self._source.dataset_name
+        for source in turn:
+            self._source = source  # the dataset a failed batch's warning names
+            batch = source._next_batch()
+            name = source.dataset_name
             self.samples_from[name] = self.samples_from.get(name, 0) + len(batch["action"])
-            drawn.append((self._source, batch))
+            drawn.append((source, batch))
         return drawn
 
     def _open_batches(self) -> None:
