@@ -296,9 +296,10 @@ class PooledTrainer(LocalTrainer):
 
     def _prepare(self, drawn: list[tuple[LocalTrainer, dict]]) -> dict:
         prepared = [source._prepare(batch) for source, batch in drawn]
-        if len(prepared) > 1:  # clients' frames differ in size: give each the size SmolVLA resizes it to
-            prepared = [self._model_sized(batch) for batch in prepared]
-        return concat_batches(prepared, set(self.bundle.policy.config.input_features))
+        if len(prepared) == 1:
+            return prepared[0]
+        sized = [self._model_sized(batch) for batch in prepared]  # the clients' frames differ in size
+        return concat_batches(sized, set(self.bundle.policy.config.input_features))
 
     def _model_sized(self, batch: dict) -> dict:
         """The batch's camera frames resized and padded as SmolVLA's own ``prepare_images`` does (the
@@ -316,8 +317,6 @@ def concat_batches(batches: list[dict], required: set[str]) -> dict:
     Keys only some batches have are left out: the datasets' own ``*_is_pad`` flags under their
     original camera names, which the policy does not read; one of the policy's ``required`` inputs
     missing from a batch is an error, not a camera silently dropped for every client."""
-    if len(batches) == 1:
-        return batches[0]
     common = set.intersection(*(set(b) for b in batches))
     if missing := sorted(required - common):
         raise TrainingError(f"The pooled batches cannot be joined: some clients' batches lack {missing}.")

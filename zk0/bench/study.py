@@ -134,34 +134,26 @@ def federated_models(
 
 
 def centralised(
-    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str]
+    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str], wide: bool = False
 ) -> tuple[Weights, dict[str, int]]:
-    """One policy trained on every client's batches in turn, as many steps as all clients take together;
-    its weights and the samples it took from each client."""
-    pooled_run = replace(run, local_steps=run.local_steps * len(sessions))
+    """One policy trained on every client's batches, its weights and the samples it took from each client.
+
+    By default a batch from each client in turn, for as many steps as all clients take together.
+    With ``wide`` (the equal-steps baseline), only the federation's sequential steps (rounds x local
+    steps), each on a batch from every client together (batch = clients x batch): the same samples
+    in a quarter of the steps, so its gap to the default is what fewer sequential steps cost, and
+    the federation's gap to it is what federating costs beyond that."""
+    clients = len(sessions)
+    if wide:
+        pooled_run = replace(run, batch_size=run.batch_size * clients)
+    else:
+        pooled_run = replace(run, local_steps=run.local_steps * clients)
     first = sessions[0]
     bundle = build_policy(pooled_run, first.split.meta, first.split.entry, cameras)
     set_trainable(bundle, start)
-    trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled_run)
+    trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled_run, wide=wide)
     trainer.fit(pooled_run.total_steps, mu=0.0, global_step=0)
     return snapshot(bundle), dict(trainer.samples_from)
-
-
-def centralised_equal_steps(
-    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str]
-) -> Weights:
-    """One policy trained for as many steps as the federation takes in sequence (rounds x local
-    steps), each on a batch from every client together (batch = clients x batch): the samples of
-    the other baselines in a quarter of the steps, so its gap to ``centralised`` is what fewer
-    sequential steps cost, and the federation's gap to it is what federating costs beyond that."""
-    wide_run = replace(run, batch_size=run.batch_size * len(sessions))
-    first = sessions[0]
-    bundle = build_policy(wide_run, first.split.meta, first.split.entry, cameras)
-    set_trainable(bundle, start)
-    PooledTrainer.over(bundle, [s.trainer for s in sessions], wide_run, wide=True).fit(
-        wide_run.total_steps, mu=0.0, global_step=0
-    )
-    return snapshot(bundle)
 
 
 def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
@@ -275,7 +267,7 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     models["centralised"], seen = centralised(sessions, run, start, cameras)
     for session in sessions:
         models[f"local {session.index}"] = local_only(session, run, start)
-    models[EQUAL_STEPS] = centralised_equal_steps(sessions, run, start, cameras)  # last: the others' data order stays
+    models[EQUAL_STEPS], _ = centralised(sessions, run, start, cameras, wide=True)  # last: the others' data order stays
     matrix = evaluate_all(models, columns, run)
     closed_loop = {}
     if setting in SIM_SETTINGS:
