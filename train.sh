@@ -136,12 +136,17 @@ pgrep -f "flower-superlink.*--port $port" >/dev/null || own_superlink=1
 # signalled: once the simulation exits, Ray's processes are no longer under the SuperLink.
 superlink_tree() {
     [ "$own_superlink" = 1 ] || return 0
-    local pid
-    for pid in $(pgrep -f "flower-superlink.*--port $port"); do echo "$pid"; descendants "$pid"; done
-}
-descendants() {
-    local child
-    for child in $(pgrep -P "$1"); do echo "$child"; descendants "$child"; done
+    # One look at the process table: a pgrep per process took seconds on a loaded machine, long
+    # enough for a stopped run's short rounds to go on. The pattern travels in the environment so
+    # that this awk does not match itself.
+    ps -e -o pid=,ppid=,args= | SUPERLINK="flower-superlink.*--port $port" awk '
+        { parent[$1] = $2; pid = $1; $1 = $2 = ""; if ($0 ~ ENVIRON["SUPERLINK"]) root[pid] = 1 }
+        END {
+            for (pid in parent) {
+                for (up = pid; (up in parent) && !(up in root); up = parent[up]) {}
+                if (up in root) print pid
+            }
+        }'
 }
 stop_processes() {
     [ $# -gt 0 ] || return 0
@@ -158,15 +163,14 @@ trap stop_superlink EXIT
 # private SuperLink; what the run wrote stays, and the command that continues it is printed.
 interrupted() {
     trap - INT TERM
-    echo >&2
-    local run_id run_dir last written again=() shown=""
-    run_id="$(grep -o 'Successfully started run [0-9]*' "$log" | grep -o '[0-9]*$' | head -n 1 || true)"
-    zk0_log "Stopping run ${run_id:-(not started yet)}..."
-    # The ServerApp's process first (it writes nothing once signalled: zk0.stopping), then Flower's
-    # record of the run, then everything else.
-    local tree
+    # The ServerApp's process first and at once (it writes nothing once signalled: zk0.stopping),
+    # then Flower's record of the run, then everything else.
+    local tree run_id run_dir last written again=() shown=""
     tree="$(superlink_tree)"
     pkill -TERM -f "flwr-(simulation|serverapp) --runtime-api-address [^ ]*:$port( |\$)" || true
+    echo >&2
+    run_id="$(grep -o 'Successfully started run [0-9]*' "$log" | grep -o '[0-9]*$' | head -n 1 || true)"
+    zk0_log "Stopping run ${run_id:-(not started yet)}..."
     [ -z "$run_id" ] || flwr stop "$run_id" local >/dev/null 2>&1 || true
     kill "$flwr_pid" 2>/dev/null || true
     stop_processes $tree
