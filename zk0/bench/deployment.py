@@ -93,15 +93,18 @@ def message_breakdown(history: dict, steps: int) -> dict[str, dict[str, float]]:
 
 
 def fixed_cost(history: dict, steps: int) -> float:
-    """Mean seconds per steady round beyond the slowest client's local steps and the evaluations."""
+    """Mean seconds per steady round beyond the slowest client's local steps and the evaluations
+    that ran in it."""
     walls = round_walls(history)
     costs = []
     for record in history["rounds"][2:]:
         clients = [c for c in record["clients"].values() if "train" in c]
         if not clients:
             raise RuntimeError(f"No client trained in round {record['round']}; see the clients' logs.")
+        # A client's evaluation of the round's model mostly rides on the next round's train message
+        # (in its evaluate-s); only an evaluate message of its own (the last round's) ran in this round.
         work = max(c["train"]["step-time"] * steps + c["train"]["evaluate-s"] for c in clients)
-        work += max((c["evaluate"]["eval-s"] for c in clients if "evaluate" in c), default=0.0)
+        work += max((c["evaluate"]["eval-s"] for c in clients if "handler-s" in c.get("evaluate", {})), default=0.0)
         work += record.get("server-evaluate", {}).get("eval-s", 0.0)
         costs.append(walls[record["round"] - 1] - work)
     return statistics.mean(costs)
