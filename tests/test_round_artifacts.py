@@ -76,3 +76,47 @@ def test_models_best_keeps_the_lowest_server_mse_round_zero_included(tmp_path, c
     recorded = json.loads((tmp_path / "server" / "metrics_history.json").read_text())["rounds"]
     assert [r["best"]["round"] for r in recorded] == [0, 0, 2, 2]
     assert sorted(p.name for p in (tmp_path / "models").iterdir()) == ["best", "checkpoint_round_3"]
+
+
+def test_a_best_round_that_keeps_a_checkpoint_links_models_best_to_its_files(tmp_path, client_parts, registry):
+    """When the best round is also a checkpoint round, models/best is the checkpoint's files, not a
+    second copy of the model (1.8 GB full-size), without the server optimiser's state; a later
+    best replaces models/best and leaves the checkpoint as it was."""
+    import json
+
+    from safetensors.torch import load_file
+
+    from zk0.artifacts import SERVER_STATE_FILE
+    from zk0.policy import get_trainable
+    from zk0.tracking import Tracker
+
+    bundle = client_parts[0]
+    run = RunConfig(num_server_rounds=4, checkpoint_interval=2)
+    history = History(tmp_path, {0: registry.clients[0].name}, {})
+    artifacts = RoundArtifacts(
+        run, registry, bundle, registry.get(run.server_eval_dataset), history, Tracker.start(run, tmp_path), {}, 1
+    )
+    start = get_trainable(bundle)
+    rounds = {r: ArrayRecord({n: t + 0.01 * r for n, t in start.to_torch_state_dict().items()}) for r in (1, 2, 3)}
+    models = tmp_path / "models"
+    name = next(iter(start))
+
+    def weights(folder: str) -> torch.Tensor:
+        return load_file(models / folder / "model.safetensors")[name]
+
+    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0}), {})
+    artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 80.0}), {})
+    artifacts.round_ended(2, rounds[2], MetricRecord({"action-mse": 40.0}), {})
+    best, checkpoint = models / "best", models / "checkpoint_round_2"
+    assert (best / "model.safetensors").stat().st_ino == (checkpoint / "model.safetensors").stat().st_ino
+    assert (checkpoint / SERVER_STATE_FILE).is_file() and not (best / SERVER_STATE_FILE).exists()
+    assert json.loads((best / "zk0_round.json").read_text()) == {"round": 2, "server-evaluate": {"action-mse": 40.0}}
+    assert sorted(p.name for p in best.rglob("*")) == sorted(
+        p.name for p in checkpoint.rglob("*") if p.name != SERVER_STATE_FILE
+    )
+    assert torch.equal(weights("best"), torch.from_numpy(rounds[2][name].numpy()))
+
+    artifacts.round_ended(3, rounds[3], MetricRecord({"action-mse": 30.0}), {})
+    assert torch.equal(weights("best"), torch.from_numpy(rounds[3][name].numpy()))
+    assert torch.equal(weights("checkpoint_round_2"), torch.from_numpy(rounds[2][name].numpy()))
+    assert sorted(p.name for p in models.iterdir()) == ["best", "checkpoint_round_2"]

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
@@ -24,7 +25,7 @@ from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0 import stopping
-from zk0.artifacts import ROUND_FILE, History, clients_trained, save_checkpoint
+from zk0.artifacts import ROUND_FILE, History, clients_trained, link_checkpoint, save_checkpoint
 from zk0.config import RunConfig
 from zk0.hub import can_push, publish
 from zk0.logs import say
@@ -96,7 +97,8 @@ class RoundArtifacts:
         if evaluation is not None:
             self.history.add(server_round, "server-evaluate", dict(evaluation))
             self.keep_if_best(server_round, arrays, dict(evaluation))
-        if server_round and self.unsaved:  # round 0's model is written once a round has trained
+        # round 0's model is written once a round has trained; a checkpoint round's best after its checkpoint
+        if server_round and self.unsaved and not self.checkpoint_holds_best(server_round):
             stopping.check(server_round)
             self.save(self.best["round"], *self.unsaved, "best")
             self.unsaved = None
@@ -106,7 +108,11 @@ class RoundArtifacts:
         write_report(self.history.run_dir, self.history.snapshot(), self.run.to_flat(), self.best, self.run.num_server_rounds)
         if self.run.checkpoints_in(server_round):
             stopping.check(server_round)
-            self.checkpoint(server_round, arrays, evaluation, server_state)
+            path = self.checkpoint(server_round, arrays, evaluation, server_state)
+            if self.unsaved:  # this round's model is the best
+                stopping.check(server_round)
+                link_checkpoint(path, "best")
+                self.unsaved = None
         if server_round == self.run.num_server_rounds and self.run.hf_repo_id:
             self.publish_best()
         self.tracker.log(server_round, self.history.round(server_round))
@@ -121,15 +127,21 @@ class RoundArtifacts:
         arrays: ArrayRecord,
         evaluation: MetricRecord | None,
         server_state: dict[str, np.ndarray],
-    ) -> None:
+    ) -> Path:
         """A lerobot pretrained-model directory of the global model and the server optimiser's state
-        (staged and pushed for the Hub, tagged, with ``hf-push-every-checkpoint``)."""
+        (staged and pushed for the Hub, tagged, with ``hf-push-every-checkpoint``); its path."""
         state = (self.run.server_optimiser, server_state)
         path = self.save(server_round, arrays, dict(evaluation) if evaluation else None, server_state=state)
         logger.info("Round {} checkpoint: {}", server_round, path)
         if self.run.hf_repo_id and self.run.hf_push_every_checkpoint:
             metrics = dict(evaluation) if evaluation else None
             publish(self.run, self.history.run_dir, path, server_round, self.entries(), metrics, self.push, tag=True)
+        return path
+
+    def checkpoint_holds_best(self, server_round: int) -> bool:
+        """This round's model is the best and the round keeps a checkpoint: ``models/best`` is then
+        made from the checkpoint's files once it is written, not written a second time."""
+        return self.run.checkpoints_in(server_round) and self.best is not None and self.best["round"] == server_round
 
     def keep_if_best(self, server_round: int, arrays: ArrayRecord, evaluation: dict) -> None:
         """Remember this round's model as the best when it beats every earlier one (written to
