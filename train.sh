@@ -139,7 +139,7 @@ superlink_tree() {
     # One look at the process table: a pgrep per process took seconds on a loaded machine, long
     # enough for a stopped run's short rounds to go on. The pattern travels in the environment so
     # that this awk does not match itself.
-    ps -e -o pid=,ppid=,args= | SUPERLINK="flower-superlink.*--port $port" awk '
+    ps -e -ww -o pid=,ppid=,args= | SUPERLINK="flower-superlink.*--port $port" awk '
         { parent[$1] = $2; pid = $1; $1 = $2 = ""; if ($0 ~ ENVIRON["SUPERLINK"]) root[pid] = 1 }
         END {
             for (pid in parent) {

@@ -185,7 +185,7 @@ def test_ctrl_c_stops_the_run_at_once_and_prints_the_command_that_continues_it(t
     from zk0.simulation import superlink_tree
 
     out = tmp_path / "outputs"
-    env = own_flower(tmp_path)
+    env = own_flower(tmp_path) | {"COLUMNS": "80"}  # a narrow terminal: ps cuts command lines to it
     overrides = (
         f"num-server-rounds=6 local-steps=1 batch-size=4 checkpoint-interval=1 eval-batches=1 output-dir='{out}'"
     )
