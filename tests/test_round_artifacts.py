@@ -33,6 +33,15 @@ def test_each_round_ends_with_a_line_a_person_reads(tmp_path, monkeypatch):
     )
 
 
+def server_artifacts(run: RunConfig, tmp_path, client_parts, registry) -> RoundArtifacts:
+    """The server's writer for ``run`` on the first client's policy, writing under ``tmp_path``."""
+    from zk0.tracking import Tracker
+
+    history = History(tmp_path, {0: registry.clients[0].name}, {})
+    server = registry.get(run.server_eval_dataset)
+    return RoundArtifacts(run, registry, client_parts[0], server, history, Tracker.start(run, tmp_path), {}, 1)
+
+
 def test_models_best_keeps_the_lowest_server_mse_round_zero_included(tmp_path, client_parts, registry):
     """Round 0 (the starting model) is the best until a round beats it; models/best is rewritten only
     then, holds that round's weights and says which round it is; a worse round changes nothing."""
@@ -41,15 +50,10 @@ def test_models_best_keeps_the_lowest_server_mse_round_zero_included(tmp_path, c
     from safetensors.torch import load_file
 
     from zk0.policy import get_trainable
-    from zk0.tracking import Tracker
 
-    bundle = client_parts[0]
     run = RunConfig(num_server_rounds=3, checkpoint_interval=10)
-    history = History(tmp_path, {0: registry.clients[0].name}, {})
-    artifacts = RoundArtifacts(
-        run, registry, bundle, registry.get(run.server_eval_dataset), history, Tracker.start(run, tmp_path), {}, 1
-    )
-    start = get_trainable(bundle)
+    artifacts = server_artifacts(run, tmp_path, client_parts, registry)
+    start = get_trainable(client_parts[0])
     names = list(start)
     rounds = {r: ArrayRecord({n: t + 0.01 * r for n, t in start.to_torch_state_dict().items()}) for r in (1, 2, 3)}
     best = tmp_path / "models" / "best"
@@ -88,15 +92,10 @@ def test_a_best_round_that_keeps_a_checkpoint_links_models_best_to_its_files(tmp
 
     from zk0.artifacts import SERVER_STATE_FILE
     from zk0.policy import get_trainable
-    from zk0.tracking import Tracker
 
-    bundle = client_parts[0]
     run = RunConfig(num_server_rounds=4, checkpoint_interval=2)
-    history = History(tmp_path, {0: registry.clients[0].name}, {})
-    artifacts = RoundArtifacts(
-        run, registry, bundle, registry.get(run.server_eval_dataset), history, Tracker.start(run, tmp_path), {}, 1
-    )
-    start = get_trainable(bundle)
+    artifacts = server_artifacts(run, tmp_path, client_parts, registry)
+    start = get_trainable(client_parts[0])
     rounds = {r: ArrayRecord({n: t + 0.01 * r for n, t in start.to_torch_state_dict().items()}) for r in (1, 2, 3)}
     models = tmp_path / "models"
     name = next(iter(start))
