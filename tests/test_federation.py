@@ -286,7 +286,7 @@ def test_flwr_stop_ends_the_run_at_once(flower_env, tmp_path):
         time.sleep(0.05)
     time.sleep(6)  # past Flower's 5 s force exit
     at_signal = datetime.strptime(signalled[1], "%Y-%m-%d %H:%M:%S.%f").timestamp()
-    late = {p.name: p.stat().st_mtime - at_signal for p in (run_dir / "server").glob("round_*.json")}
-    late = {name: round(s, 2) for name, s in late.items() if s > 0.5}  # a write that passed its check may end
+    after = {p.name: p.stat().st_mtime - at_signal for p in (run_dir / "server").glob("round_*.json")}
+    late = {name: round(s, 2) for name, s in after.items() if s > 0.5}  # a write already past its check may end
     assert not late, f"written this many seconds after the signal: {late}"
     assert "the server writes nothing more" in server_log.read_text()
