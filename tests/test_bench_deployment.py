@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from zk0.bench.deployment import fixed_cost, message_breakdown
+from zk0.bench.deployment import fixed_cost_figures, fixed_costs, message_breakdown
 
 
 def round_record(number: int, wall: float, server_eval: float, train: dict, evaluate: dict) -> dict:
@@ -42,7 +42,14 @@ HISTORY = {
 def test_an_evaluation_that_rode_on_the_next_train_message_is_not_subtracted_twice():
     round_2 = (127.6 - 76.7) - (2 * 7.0 + 13.8) - 12.6
     round_3 = (199.6 - 127.6) - (2 * 7.1 + 12.9) - 13.2 - 14.3
-    assert fixed_cost(HISTORY, steps=2) == pytest.approx((round_2 + round_3) / 2)
+    assert fixed_costs(HISTORY, steps=2) == pytest.approx([round_2, round_3])
+
+
+def test_the_middle_rounds_fixed_cost_leaves_out_each_runs_last_round():
+    figures = fixed_cost_figures([[2.0, 9.0], [4.0, 11.0]])
+    assert figures["fixed-cost-middle-round-s"] == pytest.approx(3.0)
+    assert figures["fixed-cost-per-round-s"] == pytest.approx(6.5)
+    assert fixed_cost_figures([[5.0]])["fixed-cost-middle-round-s"] is None
 
 
 def test_the_message_breakdown_has_only_messages_that_were_sent():

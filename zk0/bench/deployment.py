@@ -8,9 +8,10 @@ their ratio over the steady rounds (round 1 also builds every client), and for t
 where a client's message time goes, from the timings every reply carries: the ClientApp
 process's start and imports, the client build, restoring training state, the local steps or the
 evaluation, and handing the message to the warm worker and back. The fixed cost per client and
-round is everything that is not local steps or evaluation. ``--supernode-defaults`` also runs the
-deployment with ``zk0 supernode``'s default CPU share (no ``--cpus``: the SuperNodes divide the
-machine, zk0.machine), next to the ``--cpus-per-node`` one.
+round is everything that is not local steps or evaluation, given for each steady round and for
+the middle ones apart (the last round also writes the checkpoint and sends an evaluate message).
+``--supernode-defaults`` also runs the deployment with ``zk0 supernode``'s default CPU share (no
+``--cpus``: the SuperNodes divide the machine, zk0.machine), next to the ``--cpus-per-node`` one.
 
     python -m zk0.bench deployment [--model full-size] [--rounds 3] [--local-steps 30] [--clients 2]
         [--batch-size 8] [--cpus-per-node N] [--supernode-defaults] [--peft lora] [--no-simulation]
@@ -92,9 +93,10 @@ def message_breakdown(history: dict, steps: int) -> dict[str, dict[str, float]]:
     return {phase: {k: statistics.mean(v) for k, v in p.items()} for phase, p in parts.items() if p}
 
 
-def fixed_cost(history: dict, steps: int) -> float:
-    """Mean seconds per steady round beyond the slowest client's local steps and the evaluations
-    that ran in it."""
+def fixed_costs(history: dict, steps: int) -> list[float]:
+    """Seconds of each steady round (round 2 on) beyond the slowest client's local steps and the
+    evaluations that ran in it. The last round also sends an evaluate message of its own and writes
+    the run's checkpoint, so it costs more than a middle round."""
     walls = round_walls(history)
     costs = []
     for record in history["rounds"][2:]:
@@ -107,7 +109,18 @@ def fixed_cost(history: dict, steps: int) -> float:
         work += max((c["evaluate"]["eval-s"] for c in clients if "handler-s" in c.get("evaluate", {})), default=0.0)
         work += record.get("server-evaluate", {}).get("eval-s", 0.0)
         costs.append(walls[record["round"] - 1] - work)
-    return statistics.mean(costs)
+    return costs
+
+
+def fixed_cost_figures(costs: list[list[float]]) -> dict:
+    """Each run's fixed cost by steady round, their mean, and the mean of the middle rounds (all
+    but the last; none with two rounds): what every round but the final one pays."""
+    middle = [c for run in costs for c in run[:-1]]
+    return {
+        "fixed-cost-by-round-s": costs,
+        "fixed-cost-per-round-s": statistics.mean(c for run in costs for c in run),
+        "fixed-cost-middle-round-s": statistics.mean(middle) if middle else None,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -167,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
         figures[mode] = {
             "round-wall-s": walls,
             "steady-round-s": statistics.mean(w for ws in walls for w in ws[1:]),
-            "fixed-cost-per-round-s": statistics.mean(fixed_cost(h, args.local_steps) for h in histories),
+            **fixed_cost_figures([fixed_costs(h, args.local_steps) for h in histories]),
             "step-s": statistics.mean(
                 c["train"]["step-time"] for h in histories for r in h["rounds"][2:] for c in r["clients"].values()
             ),
@@ -199,6 +212,10 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{mode} / simulation, steady rounds: {figures[f'ratio-{mode}']:.2f}x")
     d = figures["deployment"]
     print(f"deployment overhead: {100 * d['fixed-cost-per-round-s'] / d['steady-round-s']:.1f}% of a steady round")
+    print("fixed cost by steady round: " + " ".join(f"{c:.2f}" for c in d["fixed-cost-by-round-s"][-1]) + " s")
+    if d["fixed-cost-middle-round-s"] is not None:
+        middle = d["fixed-cost-middle-round-s"]
+        print(f"fixed cost of a middle round (no checkpoint, no evaluate message of its own): {middle:.2f} s")
     for phase, parts in d["messages"].items():
         print(f"  {phase} message (mean per client, steady rounds):")
         for name, seconds in parts.items():
