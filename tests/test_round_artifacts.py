@@ -64,6 +64,7 @@ def test_models_best_keeps_the_lowest_server_mse_round_zero_included(tmp_path, c
 
     artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0, "policy-loss": 1.0}), {})
     artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 80.0, "policy-loss": 2.0}), {})
+    artifacts.finish_writes()  # what the next round's evaluation and end wait for
     assert json.loads((best / "zk0_round.json").read_text())["round"] == 0
     assert all(torch.equal(best_weights()[n], torch.from_numpy(start[n].numpy())) for n in names)
     assert artifacts.summary() == (
@@ -116,6 +117,53 @@ def test_a_best_round_that_keeps_a_checkpoint_links_models_best_to_its_files(tmp
     assert torch.equal(weights("best"), torch.from_numpy(rounds[2][name].numpy()))
 
     artifacts.round_ended(3, rounds[3], MetricRecord({"action-mse": 30.0}), {})
+    artifacts.finish_writes()
     assert torch.equal(weights("best"), torch.from_numpy(rounds[3][name].numpy()))
     assert torch.equal(weights("checkpoint_round_2"), torch.from_numpy(rounds[2][name].numpy()))
     assert sorted(p.name for p in models.iterdir()) == ["best", "checkpoint_round_2"]
+
+
+def test_a_middle_rounds_best_is_written_while_the_next_round_trains(tmp_path, client_parts, registry):
+    """A middle round's models/best (1.8 GB full-size) is not written before the round ends, when
+    the clients would wait for it, but in a thread while they train; it takes the server's policy
+    only when the policy is free (here held, as the next round's evaluation holds it)."""
+    import json
+    import threading
+
+    from zk0.policy import get_trainable
+
+    run = RunConfig(num_server_rounds=3, checkpoint_interval=10)
+    artifacts = server_artifacts(run, tmp_path, client_parts, registry)
+    start = get_trainable(client_parts[0])
+    better = ArrayRecord({n: t + 0.01 for n, t in start.to_torch_state_dict().items()})
+    best = tmp_path / "models" / "best"
+    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0}), {})
+    with client_parts[0].lock:
+        ender = threading.Thread(target=artifacts.round_ended, args=(1, better, MetricRecord({"action-mse": 40.0}), {}))
+        ender.start()
+        ender.join(timeout=60)
+        assert not ender.is_alive(), "round 1 ended only once models/best was written"
+        assert not best.exists()
+    artifacts.finish_writes()
+    assert json.loads((best / "zk0_round.json").read_text())["round"] == 1
+
+
+def test_a_failed_write_of_models_best_ends_the_run_at_the_next_round(tmp_path, client_parts, registry, monkeypatch):
+    """An error in the thread that writes models/best (a full disk) is not lost with the thread: the
+    next round's end raises it."""
+    import pytest
+
+    from zk0.policy import get_trainable
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    run = RunConfig(num_server_rounds=3, checkpoint_interval=10)
+    artifacts = server_artifacts(run, tmp_path, client_parts, registry)
+    start = get_trainable(client_parts[0])
+    better = ArrayRecord({n: t + 0.01 for n, t in start.to_torch_state_dict().items()})
+    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0}), {})
+    monkeypatch.setattr(round_artifacts, "save_checkpoint", disk_full)
+    artifacts.round_ended(1, better, MetricRecord({"action-mse": 40.0}), {})
+    with pytest.raises(OSError, match="No space left on device"):
+        artifacts.round_ended(2, better, MetricRecord({"action-mse": 45.0}), {})

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -47,6 +48,9 @@ class PolicyBundle:
     trainable_names: list[str]
     device: torch.device
     stats: dict  # the normalisation statistics the processors use, under model key names
+    # Held while the policy's weights are set and used: the server's evaluation and the writer of
+    # models/best, which runs while the next round's clients train, share one policy.
+    lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
 
 def resolve_device(name: str) -> torch.device:

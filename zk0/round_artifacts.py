@@ -4,6 +4,9 @@ the best model so far, the Hub staging, W&B, and one progress line a person read
 The best model is the one with the lowest server action MSE of every evaluated round, round 0
 (the starting model) included, kept in ``models/best``: a run that starts from a pretrained
 model never hands back one that does worse on the server's evaluation set than where it began.
+A middle round's models/best is written in a thread while the next round's clients train (a
+full-size model is 1.8 GB: seconds the clients would otherwise wait for); the server's next use
+of the policy waits for it (``PolicyBundle.lock``), and so does the next round's end.
 
 ``RoundArtifacts`` is the observer ``zk0.aggregation.ValidatingStrategy`` calls: with the client
 replies each phase counted or lost (``record_clients``), and once a round is over, after Flower's
@@ -15,6 +18,7 @@ given, so a simulation and a deployment leave the same files. Once the run is st
 from __future__ import annotations
 
 import json
+import threading
 import time
 from pathlib import Path
 
@@ -59,6 +63,8 @@ class RoundArtifacts:
         self.best = best  # {"round", "action-mse"} of models/best (a resumed run's, read from its folder)
         self.start_mse: float | None = None  # round 0's server action MSE
         self.unsaved: tuple[ArrayRecord, dict] | None = None  # the best model, until written to models/best
+        self.writing: threading.Thread | None = None  # models/best being written while the next round trains
+        self.write_error: BaseException | None = None
         self.push = can_push(run)
         self.started = time.perf_counter()
         self.last_end = self.started  # when the latest round's line was written
@@ -92,6 +98,7 @@ class RoundArtifacts:
     ) -> None:
         """The round's JSON, charts and report, a checkpoint (with the server optimiser's state) when
         the run keeps one, W&B, the progress line."""
+        self.finish_writes()
         stopping.check(server_round)
         self.history.add(server_round, "global-arrays", {"tensors": len(arrays), "bytes": arrays.count_bytes()})
         if evaluation is not None:
@@ -100,8 +107,11 @@ class RoundArtifacts:
         # round 0's model is written once a round has trained; a checkpoint round's best after its checkpoint
         if server_round and self.unsaved and not self.checkpoint_holds_best(server_round):
             stopping.check(server_round)
-            self.save(self.best["round"], *self.unsaved, "best")
-            self.unsaved = None
+            if server_round < self.run.num_server_rounds:
+                self.write_best_while_clients_train()
+            else:
+                self.save(self.best["round"], *self.unsaved, "best")
+                self.unsaved = None
         self.history.add(server_round, "best", self.best)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
@@ -159,6 +169,33 @@ class RoundArtifacts:
         self.best = candidate
         self.unsaved = (arrays, evaluation)
 
+    def write_best_while_clients_train(self) -> None:
+        """Write the unsaved best model to ``models/best`` in a thread: it runs while Flower sends
+        the next round's messages and waits for the clients' replies, when the server has nothing
+        else to do. ``finish_writes`` waits for it."""
+        (arrays, evaluation), best_round = self.unsaved, self.best["round"]
+        self.unsaved = None
+
+        def write() -> None:
+            try:
+                stopping.check(best_round)
+                self.save(best_round, arrays, evaluation, "best")
+            except BaseException as err:  # raised in the round loop, by finish_writes
+                self.write_error = err
+
+        self.writing = threading.Thread(target=write, name="zk0-models-best")
+        self.writing.start()
+
+    def finish_writes(self) -> None:
+        """Wait for models/best's write, if one is under way; its error (a stop, a full disk) is
+        the round loop's."""
+        if self.writing is not None:
+            self.writing.join()
+            self.writing = None
+        if self.write_error is not None:
+            error, self.write_error = self.write_error, None
+            raise error
+
     def save(
         self,
         server_round: int,
@@ -168,12 +205,13 @@ class RoundArtifacts:
         server_state: tuple[str, dict[str, np.ndarray]] | None = None,
     ):
         """``arrays`` as a checkpoint of ``server_round`` (under ``models/<name>``, if named)."""
-        set_trainable(self.bundle, arrays)
         names = self.history.client_names
         per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(self.client_stats.items())}
-        return save_checkpoint(
-            self.checkpoint_bundle(), self.history.run_dir, server_round, per_client, name, evaluation, server_state
-        )
+        with self.bundle.lock:
+            set_trainable(self.bundle, arrays)
+            return save_checkpoint(
+                self.checkpoint_bundle(), self.history.run_dir, server_round, per_client, name, evaluation, server_state
+            )
 
     def entries(self) -> list[DatasetEntry]:
         """The datasets a model card lists: the clients that took part, and the server's."""

@@ -63,13 +63,14 @@ class ServerEvaluation:
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
         if server_round and not self.run.evaluates_in(server_round):
             return None
-        set_trainable(self.bundle, arrays)
         run = self.run
-        metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
-        if self.closed_loop:
-            stopping.check(server_round)
-            self.videos.mkdir(parents=True, exist_ok=True)
-            metrics |= self.closed_loop(self.bundle, self.videos / f"round_{server_round}.mp4")
+        with self.bundle.lock:  # models/best may still be being written from this policy
+            set_trainable(self.bundle, arrays)
+            metrics = evaluate(self.bundle, self.split, self.loader, run.eval_batches, run.seed, run.max_skip_fraction)
+            if self.closed_loop:
+                stopping.check(server_round)
+                self.videos.mkdir(parents=True, exist_ok=True)
+                metrics |= self.closed_loop(self.bundle, self.videos / f"round_{server_round}.mp4")
         logger.info("Round {} server evaluation on {}: {}", server_round, self.split.entry.name, metrics)
         return MetricRecord(metrics)
 
