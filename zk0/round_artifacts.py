@@ -175,11 +175,12 @@ class RoundArtifacts:
         else to do. ``finish_writes`` waits for it."""
         (arrays, evaluation), best_round = self.unsaved, self.best["round"]
         self.unsaved = None
+        stats = dict(self.client_stats)  # the round loop adds the next round's while this writes
 
         def write() -> None:
             try:
                 stopping.check(best_round)
-                self.save(best_round, arrays, evaluation, "best")
+                self.save(best_round, arrays, evaluation, "best", client_stats=stats)
             except BaseException as err:  # raised in the round loop, by finish_writes
                 self.write_error = err
 
@@ -203,15 +204,17 @@ class RoundArtifacts:
         evaluation: dict | None,
         name: str | None = None,
         server_state: tuple[str, dict[str, np.ndarray]] | None = None,
+        client_stats: dict[int, dict] | None = None,
     ):
-        """``arrays`` as a checkpoint of ``server_round`` (under ``models/<name>``, if named)."""
+        """``arrays`` as a checkpoint of ``server_round`` (under ``models/<name>``, if named), with
+        ``client_stats`` (default: every client's known so far)."""
+        client_stats = self.client_stats if client_stats is None else client_stats
         names = self.history.client_names
-        per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(self.client_stats.items())}
+        per_client = {f"client_{i}_{names[i]}": stats for i, stats in sorted(client_stats.items())}
         with self.bundle.lock:
             set_trainable(self.bundle, arrays)
-            return save_checkpoint(
-                self.checkpoint_bundle(), self.history.run_dir, server_round, per_client, name, evaluation, server_state
-            )
+            bundle, run_dir = self.checkpoint_bundle(client_stats), self.history.run_dir
+            return save_checkpoint(bundle, run_dir, server_round, per_client, name, evaluation, server_state)
 
     def entries(self) -> list[DatasetEntry]:
         """The datasets a model card lists: the clients that took part, and the server's."""
@@ -248,9 +251,9 @@ class RoundArtifacts:
         success = f"success {evaluation['success-rate']:.0%} in the simulator, " if "success-rate" in evaluation else ""
         return f"Round 0 (the starting model): {success}server action MSE {evaluation['action-mse']:.4g}"
 
-    def checkpoint_bundle(self) -> PolicyBundle:
+    def checkpoint_bundle(self, client_stats: dict[int, dict]) -> PolicyBundle:
         """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
-        stats = aggregate_stats(list(self.client_stats.values())) if self.client_stats else self.bundle.stats
+        stats = aggregate_stats(list(client_stats.values())) if client_stats else self.bundle.stats
         pre, post = make_pre_post_processors(self.bundle.policy.config, dataset_stats=stats)
         return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
 
