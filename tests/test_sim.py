@@ -15,12 +15,15 @@ import pytest
 from zk0.assets import ensure_dataset
 from zk0.assets.datasets import JOINT_NAMES
 from zk0.config import ConfigError, from_run_config
+from zk0.registry import load_registry
 from zk0.sim.env import HOLD_STEPS, JOINTS, PickCubeEnv, to_lerobot, to_mujoco
 from zk0.sim.expert import PickExpert
 from zk0.sim.record import demonstrate, episode_seed
 from zk0.sim.tasks import SIM_SPECS
 
 REGISTRY = "configs/sim-registry.toml"
+CUBE_REGISTRY = "configs/sim-cube-registry.toml"
+SIM_SPECS_CAMERAS = {"front": "camera1", "wrist": "camera2"}  # the sim registries' camera map
 # The registry maps the env's cameras onto the model's inputs; lerobot-eval takes the same map.
 CAMERA_MAP = {"observation.images.front": "observation.images.camera1", "observation.images.wrist": "observation.images.camera2"}
 
@@ -112,8 +115,8 @@ def test_the_sim_learning_benchmark_trains_centrally_and_rolls_out_along_the_way
     `every` steps in the server's conditions, each with its rates and its first episode's video."""
     from zk0.bench.sim_learning import rollout_rows
 
-    for name in SIM_SPECS:
-        ensure_dataset(name)
+    for entry in load_registry(REGISTRY).entries:
+        ensure_dataset(entry.name)
     run = from_run_config(
         {"registry": REGISTRY, "server-eval-dataset": "sim-so101-eval", "model": "tiny-128", "batch-size": 2}
     )
@@ -121,6 +124,54 @@ def test_the_sim_learning_benchmark_trains_centrally_and_rolls_out_along_the_way
     assert row["steps"] == 2 and np.isfinite(row["train-loss"]) and row["step-time"] > 0
     assert 0.0 <= row["success-rate"] <= row["lifted-rate"] <= 1.0 and 1 <= row["episode-length"] <= 300
     assert (tmp_path / "steps_2.mp4").stat().st_size > 0
+
+
+def test_a_cube_in_state_task_tells_the_policy_where_the_target_cube_is():
+    """The privileged study setting (``-cube`` set-ups): the six joints, then the target cube's xy
+    in centimetres, at reset and as the cube moves; lerobot's env config says eight values."""
+    from zk0.sim.lerobot_env import PickCubeEnvConfig
+
+    env = PickCubeEnv(SIM_SPECS["sim-so101-eval-cube"].task, 64, 64)
+    try:
+        assert env.observation_space["agent_pos"].shape == (8,)
+        observation, _ = env.reset(seed=3)
+        expert = PickExpert(env)
+        expert.reset()
+        for _ in range(120):  # past the grasp: the cube rises in the jaws
+            state = observation["agent_pos"]
+            assert state.shape == (8,) and state.dtype == np.float32
+            assert state[:6] == pytest.approx(env.joint_pos(), abs=1e-4)
+            assert state[6:] == pytest.approx(100 * env.cube_pos()[:2], abs=1e-3)
+            observation, *_ = env.step(expert.act())
+    finally:
+        env.close()
+    assert PickCubeEnvConfig(conditions="sim-so101-eval-cube").features["agent_pos"].shape == (8,)
+    assert PickCubeEnvConfig(conditions="sim-so101-eval").features["agent_pos"].shape == (6,)
+
+
+def test_cube_in_state_demonstrations_record_eight_values_train_and_stay_out_of_a_six_value_federation(tmp_path):
+    from zk0.client import build_client
+    from zk0.preflight import DataError, ModelInputs, check_dataset
+    from zk0.registry import DatasetEntry
+    from zk0.sim.record import record_demonstrations
+
+    spec = SIM_SPECS["sim-so101-left-cube"]
+    root = tmp_path / "left-cube"
+    record_demonstrations(spec, root, seed=0, episodes=2)
+    meta = json.loads((root / "meta" / "info.json").read_text())
+    assert meta["features"]["observation.state"]["names"] == [*JOINT_NAMES, "cube.x", "cube.y"]
+    assert meta["features"]["action"]["names"] == list(JOINT_NAMES)
+    entry = DatasetEntry(repo_id=spec.repo_id, name=spec.name, root=str(root), cameras=SIM_SPECS_CAMERAS)
+    cameras = ["observation.images.camera1", "observation.images.camera2"]
+    six = ModelInputs(tuple(cameras), {"observation.state": (6,), "action": (6,)})
+    with pytest.raises(DataError, match=r"'observation.state' of size \[8\]; the model expects \[6\]"):
+        check_dataset(entry, six, eval_episodes=1)
+    run = from_run_config(
+        {"registry": CUBE_REGISTRY, "server-eval-dataset": "sim-so101-eval-cube", "batch-size": 2, "eval-episodes": 1}
+    )
+    client = build_client(run, entry, cameras, shapes={"observation.state": (8,), "action": (6,)})
+    metrics = client.trainer.fit(steps=2, mu=0.0, global_step=0)
+    assert metrics["num-examples"] == 4 and np.isfinite(metrics["train-loss"])
 
 
 def test_sim_evaluation_needs_a_simulated_server_set():

@@ -8,7 +8,10 @@ grasped, lifted) and CPU time, so a learning curve in success rate rather than a
 first episode of each rollout is saved as a video next to the JSON.
 
     python -m zk0.bench sim-learning [--model tiny-128] [--demos 100] [--steps 8000] [--every 2000]
-        [--sim-episodes 20] [--json out.json]
+        [--sim-episodes 20] [--registry configs/sim-registry.toml] [--json out.json]
+
+``--registry configs/sim-cube-registry.toml`` trains and rolls out with the target cube's xy in the
+state (privileged; docs/learning.md): what the policy does once it need not locate the cube.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from zk0.registry import load_registry
 from zk0.training import PooledTrainer
 
 REGISTRY = "configs/sim-registry.toml"
+REGISTRIES = (REGISTRY, "configs/sim-cube-registry.toml")  # from the frames; told where the cube is
 
 
 def rollout_rows(run: RunConfig, steps: int, every: int, episodes: int, videos: Path | None) -> list[dict]:
@@ -70,12 +74,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--sim-episodes", type=positive(int), default=20, help="seeded episodes per rollout")
     parser.add_argument("--lr", type=positive(float), default=1e-3)
     parser.add_argument("--batch-size", type=positive(int), default=8)
+    parser.add_argument("--registry", default=REGISTRY, choices=REGISTRIES, help="the simulated owners and server set")
     parser.add_argument("--json", help="also write the figures to this JSON file (videos next to it)")
     args = parser.parse_args(argv)
-    registry = load_registry(REGISTRY)
+    registry = load_registry(args.registry)
     generate(registry, args.demos)
     server = next(e for e in registry.entries if e.role == "server")
-    run = RunConfig(registry=REGISTRY, server_eval_dataset=server.name, model=args.model, batch_size=args.batch_size,
+    run = RunConfig(registry=args.registry, server_eval_dataset=server.name, model=args.model, batch_size=args.batch_size,
                     lr=args.lr, local_steps=args.steps)
     videos = Path(args.json).with_suffix("") if args.json else None
     if videos:
@@ -83,6 +88,6 @@ def main(argv: list[str]) -> int:
     print(f"centralised {args.model} SmolVLA on {len(registry.clients)} simulated owners' demonstrations "
           f"({args.demos} each), rolled out on {args.sim_episodes} seeded episodes of {server.name}:")
     rows = rollout_rows(run, args.steps, args.every, args.sim_episodes, videos)
-    write_json(args.json, {"model": args.model, "demos-per-client": args.demos, "batch-size": args.batch_size,
+    write_json(args.json, {"model": args.model, "registry": args.registry, "demos-per-client": args.demos, "batch-size": args.batch_size,
                            "lr": args.lr, "sim-episodes": args.sim_episodes, "rows": rows})
     return 0

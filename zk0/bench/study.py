@@ -26,8 +26,11 @@ its own quarter of the table and its arm approaches them at its own rate
 The ``sim`` setting trains on the simulated SO-101 owners' demonstrations (configs/sim-registry.toml,
 ``--demos`` per client) and also rolls every model out in the simulator (``--sim-episodes`` seeded
 episodes) in the server's span of conditions and in each client's own: success, not only MSE.
+``sim-cube`` is the same with the target cube's xy in every state (configs/sim-cube-registry.toml): a
+privileged setting in which a centrally trained policy succeeds often enough for the federation's
+success to be compared with it.
 
-    python -m zk0.bench study [--settings mild noniid sim] [--rounds 8] [--local-steps 20]
+    python -m zk0.bench study [--settings mild noniid sim sim-cube] [--rounds 8] [--local-steps 20]
         [--clients 4] [--model tiny] [--lr 8e-3] [--federation-lr LR] [--federations FedProx FedAvg Nesterov ...]
         [--server-lr LR] [--server-momentum M] [--demos 30] [--sim-episodes 10]
         [--output-dir outputs/bench-study]
@@ -64,8 +67,9 @@ SETTINGS = {
     "mild": "",
     "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml"),
     "sim": str(PROJECT_ROOT / "configs" / "sim-registry.toml"),  # judged by success rate in the simulator too
+    "sim-cube": str(PROJECT_ROOT / "configs" / "sim-cube-registry.toml"),  # the same, told where the cube is
 }
-SIM_SETTINGS = ("sim",)
+SIM_SETTINGS = ("sim", "sim-cube")
 SERVER = "server"
 EQUAL_STEPS = "equal steps"  # centralised at the federation's sequential steps, batch = clients x batch
 # The study's federations: label -> server-optimiser (only FedProx has a proximal term).

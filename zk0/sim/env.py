@@ -7,7 +7,9 @@ The action is the joint targets the servos move to, as a leader arm commands the
 observation is lerobot's env contract: ``pixels`` (``front`` and ``wrist`` cameras, uint8 HxWx3)
 and ``agent_pos``; ``task_description`` names the cube to pick up. Every step's ``info`` carries
 ``is_success`` (lerobot 0.6.1's ``rollout`` counts a missing key as a success) and the episode's
-graded outcome so far: reached, grasped, lifted.
+graded outcome so far: reached, grasped, lifted. In a task with ``cube_in_state`` (a privileged
+study setting) the state also carries the target cube's xy on the table in centimetres
+(``cube.x``, ``cube.y``): eight values instead of six.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from zk0.sim.tasks import SIM_SPECS, SimTask
 mujoco = load_mujoco()
 
 JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
+CUBE_STATE = ("cube.x", "cube.y")  # the target cube's xy (cm), after the joints in a cube_in_state task's state
 COLOURS = {
     "red": (0.85, 0.12, 0.12, 1.0),
     "green": (0.15, 0.7, 0.2, 1.0),
@@ -45,6 +48,11 @@ def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Rend
     for flag in (mujoco.mjtRndFlag.mjRND_SHADOW, mujoco.mjtRndFlag.mjRND_REFLECTION, mujoco.mjtRndFlag.mjRND_SKYBOX):
         renderer.scene.flags[flag] = 0
     return renderer
+
+
+def state_size(task: SimTask) -> int:
+    """How many values the task's state holds: the six joints, and the cube's xy if it is told."""
+    return len(JOINTS) + (len(CUBE_STATE) if task.cube_in_state else 0)
 
 
 def to_lerobot(qpos: np.ndarray, gripper_range: np.ndarray) -> np.ndarray:
@@ -85,7 +93,7 @@ class PickCubeEnv(gym.Env):
         self.observation_space = gym.spaces.Dict(
             {
                 "pixels": gym.spaces.Dict({"front": image, "wrist": image}),
-                "agent_pos": gym.spaces.Box(-np.inf, np.inf, (len(JOINTS),), np.float32),
+                "agent_pos": gym.spaces.Box(-np.inf, np.inf, (state_size(self.task),), np.float32),
             }
         )
         self.colour = self.task.colours[0]
@@ -196,7 +204,10 @@ class PickCubeEnv(gym.Env):
         return images
 
     def _observation(self) -> dict:
-        return {"pixels": self._images(), "agent_pos": self.joint_pos()}
+        state = self.joint_pos()
+        if self.task.cube_in_state:
+            state = np.concatenate([state, 100.0 * self.cube_pos()[:2]]).astype(np.float32)
+        return {"pixels": self._images(), "agent_pos": state}
 
     def _info(self, success: bool = False) -> dict:
         return {"is_success": success, **self.outcome}

@@ -14,7 +14,7 @@ from lerobot.configs import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 from lerobot.utils.constants import ACTION, OBS_IMAGES, OBS_STATE
 
-from zk0.sim.env import JOINTS
+from zk0.sim.env import JOINTS, state_size
 from zk0.sim.tasks import SIM_SPECS
 
 GYM_TASK = "PickCube-v0"
@@ -54,7 +54,7 @@ class PickCubeEnvConfig(EnvConfig):
         image = PolicyFeature(type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3))
         self.features = {
             ACTION: PolicyFeature(type=FeatureType.ACTION, shape=(len(JOINTS),)),
-            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(len(JOINTS),)),
+            "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(state_size(SIM_SPECS[self.conditions].task),)),
             "pixels/front": image,
             "pixels/wrist": image,
         }

@@ -4,7 +4,8 @@ Each dataset is a LeRobotDataset (v3.0, video cameras, ``stats.json``) shaped ex
 real SO-101 recording: ``observation.state`` and ``action`` as the six ``*.pos`` values,
 ``observation.images.front`` and ``.wrist``, the task sentence per episode. Only episodes the
 expert completed are kept, as an owner discards a failed take; everything is a function of
-the spec and the seed.
+the spec and the seed. A ``-cube`` set-up's state also carries the target cube's xy (privileged,
+for the study only).
 """
 
 from __future__ import annotations
@@ -15,18 +16,21 @@ from pathlib import Path
 import numpy as np
 
 from zk0.assets.datasets import JOINT_NAMES
-from zk0.sim.env import PickCubeEnv
+from zk0.sim.env import CUBE_STATE, PickCubeEnv
 from zk0.sim.expert import PickExpert
-from zk0.sim.tasks import DemoSpec
+from zk0.sim.tasks import DemoSpec, SimTask
 
 CAMERAS = ("front", "wrist")
 
 
-def features(height: int, width: int) -> dict:
-    """The dataset features of a real SO-101 recording with two cameras."""
+def features(task: SimTask, height: int, width: int) -> dict:
+    """The dataset features of a real SO-101 recording with two cameras (the state with the cube's
+    xy after the joints in a ``cube_in_state`` task)."""
     joint = {"dtype": "float32", "shape": (len(JOINT_NAMES),), "names": list(JOINT_NAMES)}
+    state_names = [*JOINT_NAMES, *CUBE_STATE] if task.cube_in_state else list(JOINT_NAMES)
+    state = {"dtype": "float32", "shape": (len(state_names),), "names": state_names}
     image = {"dtype": "video", "shape": (height, width, 3), "names": ["height", "width", "channels"]}
-    return {"observation.state": joint, "action": dict(joint), **{f"observation.images.{c}": image for c in CAMERAS}}
+    return {"observation.state": state, "action": joint, **{f"observation.images.{c}": image for c in CAMERAS}}
 
 
 def episode_seed(seed: int, name: str, index: int) -> int:
@@ -62,7 +66,7 @@ def record_demonstrations(spec: DemoSpec, root: Path, seed: int, episodes: int |
         dataset = LeRobotDataset.create(
             repo_id=spec.repo_id,
             fps=spec.task.fps,
-            features=features(spec.height, spec.width),
+            features=features(spec.task, spec.height, spec.width),
             root=root,
             robot_type="so101_follower",
             use_videos=True,

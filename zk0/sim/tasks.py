@@ -4,12 +4,13 @@ Plain data, no MuJoCo: the registry and ``zk0 assets`` read it to know which dat
 records. The four clients differ the way robot owners do: each puts its cubes in its own part
 of the table, with its own cube colours, lighting, front-camera placement and demonstration
 pace; the server's evaluation set spans all of them (every region, colour and camera), so a
-policy is judged on conditions each client never saw.
+policy is judged on conditions each client never saw. Each set-up also has a ``-cube`` twin whose
+state carries the target cube's position (``SimTask.cube_in_state``), for the privileged study.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 # Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
 RECORDER_VERSION = 2
@@ -35,6 +36,10 @@ class SimTask:
     look: Look = field(default_factory=Look)
     fps: int = 30
     episode_s: float = 10.0
+    # The target cube's xy on the table appended to the joint state: privileged, as ManiSkill's
+    # "state" observations are. A study setting only (a real robot's policy is not told where the
+    # cube is): it separates "cannot locate the cube in the frames" from "cannot act on where it is".
+    cube_in_state: bool = False
 
     @property
     def max_steps(self) -> int:
@@ -55,46 +60,51 @@ class DemoSpec:
     role: str = "client"
 
 
-SERVER_TASK = SimTask(region=(0.16, 0.28, -0.12, 0.12), colours=("red", "blue", "green", "yellow"))
-SIM_SPECS: dict[str, DemoSpec] = {
-    spec.name: spec
-    for spec in (
-        DemoSpec(
-            "sim-so101-left",
-            "zk0/sim_so101_left",
-            SimTask(region=(0.16, 0.22, 0.0, 0.12), colours=("red", "blue"), look=Look(light=0.8)),
-            speed=0.12,
-        ),
-        DemoSpec(
-            "sim-so101-right",
-            "zk0/sim_so101_right",
-            SimTask(
-                region=(0.16, 0.22, -0.12, 0.0),
-                colours=("green", "yellow"),
-                look=Look(light=0.55, light_tint=(1.0, 0.9, 0.75), front_camera=(0.55, -0.08, 0.42)),
-            ),
-            speed=0.18,
-        ),
-        DemoSpec(
-            "sim-so101-far-left",
-            "zk0/sim_so101_far_left",
-            SimTask(
-                region=(0.22, 0.28, 0.0, 0.12),
-                colours=("red", "green"),
-                look=Look(light=0.9, light_tint=(0.85, 0.9, 1.0), front_camera=(0.53, 0.07, 0.47)),
-            ),
-            speed=0.15,
-        ),
-        DemoSpec(
-            "sim-so101-far-right",
-            "zk0/sim_so101_far_right",
-            SimTask(
-                region=(0.22, 0.28, -0.12, 0.0),
-                colours=("blue", "yellow"),
-                look=Look(light=0.65, front_camera=(0.57, 0.0, 0.43), table_rgba=(0.5, 0.5, 0.5, 1.0)),
-            ),
-            speed=0.2,
-        ),
-        DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
+def with_cube_in_state(spec: DemoSpec) -> DemoSpec:
+    """The same set-up and expert, recorded with the cube's position in the state (``-cube``)."""
+    return replace(
+        spec, name=f"{spec.name}-cube", repo_id=f"{spec.repo_id}_cube", task=replace(spec.task, cube_in_state=True)
     )
-}
+
+
+SERVER_TASK = SimTask(region=(0.16, 0.28, -0.12, 0.12), colours=("red", "blue", "green", "yellow"))
+OWNERS: tuple[DemoSpec, ...] = (
+    DemoSpec(
+        "sim-so101-left",
+        "zk0/sim_so101_left",
+        SimTask(region=(0.16, 0.22, 0.0, 0.12), colours=("red", "blue"), look=Look(light=0.8)),
+        speed=0.12,
+    ),
+    DemoSpec(
+        "sim-so101-right",
+        "zk0/sim_so101_right",
+        SimTask(
+            region=(0.16, 0.22, -0.12, 0.0),
+            colours=("green", "yellow"),
+            look=Look(light=0.55, light_tint=(1.0, 0.9, 0.75), front_camera=(0.55, -0.08, 0.42)),
+        ),
+        speed=0.18,
+    ),
+    DemoSpec(
+        "sim-so101-far-left",
+        "zk0/sim_so101_far_left",
+        SimTask(
+            region=(0.22, 0.28, 0.0, 0.12),
+            colours=("red", "green"),
+            look=Look(light=0.9, light_tint=(0.85, 0.9, 1.0), front_camera=(0.53, 0.07, 0.47)),
+        ),
+        speed=0.15,
+    ),
+    DemoSpec(
+        "sim-so101-far-right",
+        "zk0/sim_so101_far_right",
+        SimTask(
+            region=(0.22, 0.28, -0.12, 0.0),
+            colours=("blue", "yellow"),
+            look=Look(light=0.65, front_camera=(0.57, 0.0, 0.43), table_rgba=(0.5, 0.5, 0.5, 1.0)),
+        ),
+        speed=0.2,
+    ),
+    DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
+)
+SIM_SPECS: dict[str, DemoSpec] = {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))}
