@@ -211,8 +211,8 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     video, a success chart, models/best; then lerobot's `lerobot-eval` runs models/best on the env."""
     from zk0.simulation import cpu_federation, flwr_run, local_federation
 
-    for name in SIM_SPECS:  # the server checks every client dataset of the registry before round 1
-        ensure_dataset(name)
+    for entry in load_registry(REGISTRY).entries:  # the server checks every client dataset before round 1
+        ensure_dataset(entry.name)
     out = tmp_path / "outputs"
     with local_federation(tmp_path / "flwr-home") as flower_env:
         log = flwr_run(
