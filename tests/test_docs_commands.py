@@ -4,13 +4,16 @@ Commands are read from the ```bash blocks (with backslash continuations joined).
 cheapest way that still exercises it: ``zk0 certs`` for real, ``zk0 superlink``/``supernode``
 with ``--dry-run`` in a folder holding those certificates (also when the docs run them inside
 the Docker image), ``./train.sh`` with ``--print``, ``flwr run``'s run config through
-``zk0 check``, benchmarks with ``--help``, ``lerobot-rollout`` through its own entry point up to
-where it would load the weights and connect the robot. A command this test does not know fails
+``zk0 check`` and benchmarks' options through their own parsers (both in this process),
+``lerobot-rollout`` through its own entry point up to where it would load the weights and
+connect the robot. A command this test does not know fails
 it, so a new documented command cannot go unexercised.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import re
 import shlex
 import subprocess
@@ -19,6 +22,8 @@ from pathlib import Path
 
 import pytest
 
+from zk0.bench.__main__ import BENCHMARKS
+from zk0.cli import main as zk0_main
 from zk0.registry import PROJECT_ROOT
 
 DOCS = [PROJECT_ROOT / "README.md", *sorted((PROJECT_ROOT / "docs").glob("*.md"))]
@@ -107,6 +112,27 @@ def checkpoint_config(path: Path) -> None:
     ).save_pretrained(path)
 
 
+def in_this_process(call, argv: list[str]) -> subprocess.CompletedProcess:
+    """``call(argv)`` from the project root, its output and exit code as a subprocess's would be:
+    these commands need no process of their own, and a fresh one costs each the imports of torch
+    and lerobot (17 s a command beside the rest of the suite)."""
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.chdir(PROJECT_ROOT), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = call(argv)
+    except SystemExit as exited:  # argparse's refusal
+        code = exited.code
+    return subprocess.CompletedProcess(argv, code or 0, out.getvalue(), err.getvalue())
+
+
+def parse_benchmark(argv: list[str]) -> int:
+    """A benchmark's documented options through its own parser: a misspelt option, value or
+    benchmark fails as it would for the user (each benchmark runs in its own tests)."""
+    assert argv[0] in BENCHMARKS, f"python -m zk0.bench has no benchmark {argv[0]!r}"
+    BENCHMARKS[argv[0]].build_parser().parse_args(argv[1:])
+    return 0
+
+
 def inner_command(tokens: list[str]) -> list[str]:
     """What ``docker run ... zk0 <command>`` runs inside the image."""
     image = next(i for i, token in enumerate(tokens) if token == "zk0" and i + 1 < len(tokens))
@@ -130,7 +156,7 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
     if tokens[:2] == ["flwr", "run"]:
         config = tokens[tokens.index("--run-config") + 1] if "--run-config" in tokens else ""
         option = ["--preset", str(PROJECT_ROOT / config)] if config.endswith(".toml") else ["--run-config", config]
-        return zk0("check", *option, cwd=PROJECT_ROOT)
+        return in_this_process(zk0_main, ["check", *option])
     if tokens[0] == "lerobot-rollout":
         policy = next(token.split("=", 1)[1] for token in tokens if token.startswith("--policy.path="))
         checkpoint_config(workspace / policy)  # the run folder's checkpoint the example names
@@ -140,8 +166,7 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
         command = [sys.executable, "-m", "zk0.sim.lerobot_eval", "--help"]
         return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
     if tokens[:3] == ["python", "-m", "zk0.bench"]:
-        command = [sys.executable, "-m", "zk0.bench", tokens[3], "--help"]
-        return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
+        return in_this_process(parse_benchmark, tokens[3:])
     raise AssertionError(f"No way to exercise {shlex.join(tokens)!r}; teach tests/test_docs_commands.py one.")
 
 

@@ -20,27 +20,26 @@ from zk0.bench import (
     study,
 )
 
+# Each module has ``main(argv)`` and ``build_parser()``.
 BENCHMARKS = {
-    "learning": learning.main,
-    "study": study.main,
-    "robust": robust.main,
-    "exchange": exchange.main,
-    "step": step.main,
-    "round": round.main,
-    "memory": memory.main,
-    "deployment": deployment.main,
-    "gpu": gpu.main,
-    "sim": sim.main,
-    "inputs": inputs.main,
-    "sim-learning": sim_learning.main,
+    "learning": learning,
+    "study": study,
+    "robust": robust,
+    "exchange": exchange,
+    "step": step,
+    "round": round,
+    "memory": memory,
+    "deployment": deployment,
+    "gpu": gpu,
+    "sim": sim,
+    "inputs": inputs,
+    "sim-learning": sim_learning,
 }
 
 
 def usage() -> str:
     """Each benchmark with the first line of its module's docstring."""
-    lines = [
-        f"  {name:<13} {sys.modules[fn.__module__].__doc__.strip().splitlines()[0]}" for name, fn in BENCHMARKS.items()
-    ]
+    lines = [f"  {name:<13} {module.__doc__.strip().splitlines()[0]}" for name, module in BENCHMARKS.items()]
     return "usage: python -m zk0.bench <benchmark> [options] (--help for its options)\n\n" + "\n".join(lines)
 
 
@@ -54,7 +53,7 @@ def main(argv: list[str]) -> int:
         return 2
     if not set(argv[1:]) & {"-h", "--help"}:
         ensure_all()  # the offline backbone and datasets: generated here, once, never by opening them
-    return BENCHMARKS[argv[0]](argv[1:])
+    return BENCHMARKS[argv[0]].main(argv[1:])
 
 
 if __name__ == "__main__":

@@ -123,7 +123,8 @@ def fixed_cost_figures(costs: list[list[float]]) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench deployment", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="tiny", help="tiny, full-size, or a SmolVLA checkpoint")
     parser.add_argument("--rounds", type=int, default=3)
@@ -145,6 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-simulation", action="store_true", help="deployment only (no Ray on this machine)")
     parser.add_argument("--keep", action="store_true", help="keep the runs' folders (printed) for their logs")
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.rounds < 2:
         parser.error("--rounds must be at least 2: round 1 builds every client, the steady state starts at 2.")

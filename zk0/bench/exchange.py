@@ -78,7 +78,8 @@ def variants(args) -> list[tuple[str, RunConfig]]:
     ]
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench exchange", description=__doc__.split("\n\n")[0])
     parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
     parser.add_argument("--peft", choices=["none", "lora"], default="none", help="lora: also LoRA's adapters")
@@ -86,6 +87,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--clients", type=int, default=4)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     registry = load_registry()

@@ -58,7 +58,8 @@ def largest_batch(small: tuple[int, float], large: tuple[int, float], budget_gib
     return int((budget_gib - m1) / per_sample + b1) if per_sample > 0 else b2
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench gpu", description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", default="full-size", choices=["full-size", "tiny"])
     parser.add_argument("--batch-size", type=int, default=64)
@@ -66,6 +67,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=10, help="steps per block of the step benchmark")
     parser.add_argument("--dataset", default="synth-so100-480p", help="the step and memory benchmarks' dataset")
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.batch_size < 4:
         parser.error(f"--batch-size got {args.batch_size}; expected at least 4 (memory is also measured at a quarter).")

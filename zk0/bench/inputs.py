@@ -46,7 +46,8 @@ class Altered:
         return self.preprocessor(batch)
 
 
-def main(argv: list[str]) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench inputs", description=__doc__.splitlines()[0])
     parser.add_argument("--registry", default="configs/sim-registry.toml", help="whose clients and server set")
     parser.add_argument("--model", default="tiny-128", choices=OFFLINE_MODELS)
@@ -55,6 +56,11 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--batch-size", type=positive(int), default=8)
     parser.add_argument("--eval-batches", type=positive(int), default=20)
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str]) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     registry = load_registry(args.registry)
     server = next(e for e in registry.entries if e.role == "server")

@@ -104,7 +104,8 @@ def mean_action_check(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench learning", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=20)
     parser.add_argument("--local-steps", type=int, default=25)
@@ -122,6 +123,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--output-dir", default="outputs/bench-learning")
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.peft == "lora":
         from zk0.bench.lora import lora_check  # it builds on this module's federations

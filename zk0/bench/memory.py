@@ -37,10 +37,16 @@ def snapshot(phase: str, device: torch.device) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench memory", description=__doc__.split("\n\n")[0])
     add_client_options(parser)
     parser.add_argument("--steps", type=int, default=5, help="steps after the first")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     baseline = snapshot("python + torch + lerobot imported", torch.device("cpu"))

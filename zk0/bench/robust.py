@@ -75,7 +75,8 @@ def bad_scales(history: dict, bad: int) -> list[float]:
     return [train["update-scale"] for train in rounds if "update-scale" in train]
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench robust", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=positive(int), default=8)
     parser.add_argument("--local-steps", type=positive(int), default=20)
@@ -83,6 +84,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--factor", type=positive(float), default=1000.0)
     parser.add_argument("--lr", type=positive(float), default=8e-3)
     parser.add_argument("--output-dir", default="outputs/bench-robust")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.clients < 3:
         parser.error(f"--clients got {args.clients}; expected >= 3 (a bad client and two others to compare it with)")

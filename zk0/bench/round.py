@@ -20,7 +20,8 @@ from zk0.errors import OneSentenceParser
 from zk0.simulation import run_federation
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench round", description=__doc__.split("\n\n")[0])
     parser.add_argument("--local-steps", type=int, default=200)
     parser.add_argument("--clients", type=int, default=1)
@@ -28,6 +29,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", default="tiny", help="tiny, full-size, or a SmolVLA checkpoint")
     parser.add_argument("--output-dir", default="outputs/bench-round")
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     run_config = (

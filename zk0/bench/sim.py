@@ -69,12 +69,18 @@ def recording(episodes: int, size: int) -> dict:
     return {**taken, "seconds-per-200": taken["seconds"] / episodes * 200}
 
 
-def main(argv: list[str]) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench sim", description=__doc__.splitlines()[0])
     parser.add_argument("--episodes", type=positive(int), default=100, help="expert episodes (default 100)")
     parser.add_argument("--size", type=positive(int), default=128, help="camera height and width (default 128)")
     parser.add_argument("--record", type=positive(int), default=20, help="demonstrations to record (default 20)")
     parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str]) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     figures = {
         "expert": expert_success(args.episodes, args.size),

@@ -65,7 +65,8 @@ def rollout_rows(run: RunConfig, steps: int, every: int, episodes: int, videos: 
     return rows
 
 
-def main(argv: list[str]) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench sim-learning", description=__doc__.splitlines()[0])
     parser.add_argument("--model", default="tiny-128", choices=OFFLINE_MODELS)
     parser.add_argument("--demos", type=positive(int), default=100, help="demonstrations per simulated client")
@@ -76,18 +77,23 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--batch-size", type=positive(int), default=8)
     parser.add_argument("--registry", default=REGISTRY, choices=REGISTRIES, help="the simulated owners and server set")
     parser.add_argument("--json", help="also write the figures to this JSON file (videos next to it)")
+    return parser
+
+
+def main(argv: list[str]) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     registry = load_registry(args.registry)
     generate(registry, args.demos)
     server = next(e for e in registry.entries if e.role == "server")
-    run = RunConfig(registry=args.registry, server_eval_dataset=server.name, model=args.model, batch_size=args.batch_size,
-                    lr=args.lr, local_steps=args.steps)
+    run = RunConfig(registry=args.registry, server_eval_dataset=server.name, model=args.model,
+                    batch_size=args.batch_size, lr=args.lr, local_steps=args.steps)
     videos = Path(args.json).with_suffix("") if args.json else None
     if videos:
         videos.mkdir(parents=True, exist_ok=True)
     print(f"centralised {args.model} SmolVLA on {len(registry.clients)} simulated owners' demonstrations "
           f"({args.demos} each), rolled out on {args.sim_episodes} seeded episodes of {server.name}:")
     rows = rollout_rows(run, args.steps, args.every, args.sim_episodes, videos)
-    write_json(args.json, {"model": args.model, "registry": args.registry, "demos-per-client": args.demos, "batch-size": args.batch_size,
-                           "lr": args.lr, "sim-episodes": args.sim_episodes, "rows": rows})
+    write_json(args.json, {"model": args.model, "registry": args.registry, "demos-per-client": args.demos,
+                           "batch-size": args.batch_size, "lr": args.lr, "sim-episodes": args.sim_episodes, "rows": rows})
     return 0

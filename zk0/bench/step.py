@@ -80,11 +80,17 @@ def zk0_steps(trainer: LocalTrainer, steps: int) -> float:
     return (time.perf_counter() - start) / steps
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench step", description=__doc__.split("\n\n")[0])
     add_client_options(parser)
     parser.add_argument("--steps", type=int, default=10, help="steps per block")
     parser.add_argument("--blocks", type=int, default=3, help="interleaved blocks per loop")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
 
     trainer, _, entry = bench_client(args, local_steps=args.steps * args.blocks * 3 + 10)

@@ -365,7 +365,8 @@ def chart(results: dict[str, dict], path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench study", description=__doc__.split("\n\n")[0])
     parser.add_argument("--settings", nargs="+", choices=list(SETTINGS), default=["mild", "noniid"])
     parser.add_argument("--rounds", type=positive(int), default=8)
@@ -397,6 +398,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output-dir", default="outputs/bench-study")
     parser.add_argument("--json", help="the figures (default: <output-dir>/study.json)")
     parser.add_argument("--chart", help="the PNG chart (default: <output-dir>/study.png)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
     args = parser.parse_args(argv)
     args.federation_lr = args.federation_lr or args.lr
     for setting in args.settings:
