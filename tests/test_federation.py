@@ -152,7 +152,8 @@ def test_a_run_that_only_gets_worse_hands_back_round_0(flower_env, tmp_path, reg
     assert len(runs) == 1, log[-3000:]
     run = runs[0]
     rounds = json.loads((run / "server" / "metrics_history.json").read_text())["rounds"]
-    mse = [r["server-evaluate"]["action-mse"] for r in rounds]
+    mse = [r["server-evaluate"]["action-mse"] for r in rounds if "server-evaluate" in r]
+    assert len(mse) == 2, "the start and the end are evaluated"
     assert mse[1] > mse[0] and mse[2] > mse[0], f"the premise: every round is worse than round 0 ({mse})"
     assert [r["best"] for r in rounds] == [{"round": 0, "action-mse": mse[0]}] * 3
     assert "no round beat the starting model" in log.split("Done in ")[-1]
@@ -231,20 +232,21 @@ def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_k
     named once per round, scaled down to the other's size, and the global model still improves."""
     out = tmp_path / "outputs"
     app = scaled_client_app(tmp_path / "app", index=1, factor=1000.0)
-    config = f"num-server-rounds=4 local-steps=10 batch-size=8 lr=2e-3 eval-batches=1000 output-dir='{out}'"
-    log = flwr_run(flower_env, config, ONE_ACTOR, app=app)
+    config = "num-server-rounds=2 local-steps=20 batch-size=8 lr=2e-3 eval-batches=1000 eval-frequency=2"
+    log = flwr_run(flower_env, f"{config} output-dir='{out}'", ONE_ACTOR, app=app)
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]
     rounds = json.loads((runs[0] / "server" / "metrics_history.json").read_text())["rounds"]
-    assert [r["round"] for r in rounds] == [0, 1, 2, 3, 4], log[-3000:]
+    assert [r["round"] for r in rounds] == [0, 1, 2], log[-3000:]
     server_log = (runs[0] / "server" / "server.log").read_text()
-    for r in (1, 2, 3, 4):
+    for r in (1, 2):
         named = f"Round {r}: client 1 (synth-so100-stacking)'s update is"
         assert server_log.count(named) == 1, f"round {r}"
         scale = rounds[r]["clients"]["1"]["train"]["update-scale"]
         assert 5e-4 < scale < 2e-3, "scaled to the other's norm: about 1/1000"
         assert rounds[r]["clients"]["0"]["train"]["update-scale"] == 1.0
-    mse = [r["server-evaluate"]["action-mse"] for r in rounds]
+    mse = [r["server-evaluate"]["action-mse"] for r in rounds if "server-evaluate" in r]
+    assert len(mse) == 2, "the start and the end are evaluated"
     assert mse[-1] < 0.8 * mse[0], f"it learns as test_bf16_exchange_learns_like_fp32's run does: {mse}"
 
 
