@@ -152,8 +152,7 @@ def test_a_run_that_only_gets_worse_hands_back_round_0(flower_env, tmp_path, reg
     assert len(runs) == 1, log[-3000:]
     run = runs[0]
     rounds = json.loads((run / "server" / "metrics_history.json").read_text())["rounds"]
-    mse = [r["server-evaluate"]["action-mse"] for r in rounds if "server-evaluate" in r]
-    assert len(mse) == 2, "the start and the end are evaluated"
+    mse = [r["server-evaluate"]["action-mse"] for r in rounds]
     assert mse[1] > mse[0] and mse[2] > mse[0], f"the premise: every round is worse than round 0 ({mse})"
     assert [r["best"] for r in rounds] == [{"round": 0, "action-mse": mse[0]}] * 3
     assert "no round beat the starting model" in log.split("Done in ")[-1]
