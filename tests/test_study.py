@@ -116,6 +116,9 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     assert "FedProx / centralised, server action MSE: " in out
     assert "FedProx / equal steps, server action MSE: " in out
     assert "better than every local-only model on the other clients' held-out episodes" in out
+    said = [line.split(": ", 1)[1].rsplit(" (", 1)[0] for line in out.splitlines() if line.startswith("  noniid: ")]
+    assert said == ["federation FedProx trained", "centralised trained", "local-only models trained",
+                    "equal steps trained", "every model evaluated on every held-out set"]  # progress as it goes
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
@@ -136,7 +139,9 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     columns = evaluation_sets(sessions, registry, run)
     start = snapshot(sessions[0].bundle)
     labels = ["start", "FedAvg", "centralised", "local 0", "local 1"]  # one federation: each is a rollout per set
-    success = closed_loop_all(dict.fromkeys(labels, start), columns, run, episodes=1)
+    said = []
+    success = closed_loop_all(dict.fromkeys(labels, start), columns, run, 1, said.append)
+    assert said == [f"every model rolled out in {column}'s conditions" for column in ("client 0", "client 1", "server")]
     assert list(success) == labels and list(success["start"]) == ["server"]
     for label in labels[1:]:
         assert list(success[label]) == ["client 0", "client 1", "server"]

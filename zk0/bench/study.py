@@ -43,6 +43,7 @@ import json
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -100,6 +101,11 @@ def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
     )
 
 
+def progress(setting: str, started: float) -> Callable[[str], None]:
+    """Says one line as each model is trained or judged: a sim study runs for an hour before its tables."""
+    return lambda done: print(f"  {setting}: {done} ({time.perf_counter() - started:.0f} s)", flush=True)
+
+
 def generate(registry: Registry, demos: int) -> None:
     """The setting's generated datasets (the non-IID and simulated ones are not in `zk0 assets`);
     all of them, as the server checks every client dataset of the registry before round 1. A
@@ -111,7 +117,7 @@ def generate(registry: Registry, demos: int) -> None:
 
 
 def federated_models(
-    args: argparse.Namespace, setting: str, registry: str, server: PolicyBundle
+    args: argparse.Namespace, setting: str, registry: str, server: PolicyBundle, say: Callable[[str], None]
 ) -> dict[str, tuple[Weights, dict]] | None:
     """Each of ``--federations`` through ``flwr run``: each final global model and the run's history
     (None, after Flower's log and one sentence, if a federation failed)."""
@@ -134,6 +140,7 @@ def federated_models(
             return None
         final = find_resume_point(history["run-dir"]).trainable(server).to_torch_state_dict()
         models[label] = (final, history)
+        say(f"federation {label} trained")
     return models
 
 
@@ -190,7 +197,9 @@ def evaluate_all(models: dict[str, Weights], columns: dict, run: RunConfig) -> d
     return matrix
 
 
-def closed_loop_all(models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int) -> dict:
+def closed_loop_all(
+    models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int, say: Callable[[str], None]
+) -> dict:
     """Every trained model's success in closed loop, in each evaluation set's conditions (the server's
     span, and each client's own set-up), with that set's processors: {model: {column: rates}}. The
     untrained start is rolled out in the server's conditions only."""
@@ -208,6 +217,7 @@ def closed_loop_all(models: dict[str, Weights], columns: dict, run: RunConfig, e
                 matrix[label][column] = loop(bundle)
         finally:
             loop.close()
+        say(f"every model rolled out in {column}'s conditions")
     return matrix
 
 
@@ -264,18 +274,23 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     sessions = [build_client(run, entry, cameras, i) for i, entry in enumerate(registry.clients[: args.clients])]
     columns = evaluation_sets(sessions, registry, run)
     start = snapshot(sessions[0].bundle)
-    federations = federated_models(args, setting, registry_path, columns[SERVER][0])
+    say = progress(setting, started)
+    federations = federated_models(args, setting, registry_path, columns[SERVER][0], say)
     if federations is None:
         return None
     models: dict[str, Weights] = {"start": start, **{label: w for label, (w, _) in federations.items()}}
     models["centralised"], seen = centralised(sessions, run, start, cameras)
+    say("centralised trained")
     for session in sessions:
         models[f"local {session.index}"] = local_only(session, run, start)
+    say("local-only models trained")
     models[EQUAL_STEPS], _ = centralised(sessions, run, start, cameras, wide=True)  # last: the others' data order stays
+    say("equal steps trained")
     matrix = evaluate_all(models, columns, run)
+    say("every model evaluated on every held-out set")
     closed_loop = {}
     if setting in SIM_SETTINGS:
-        success = closed_loop_all(models, columns, run, args.sim_episodes)
+        success = closed_loop_all(models, columns, run, args.sim_episodes, say)
         closed_loop = {"success": success, "success-summary": sim_summary(success, len(sessions))}
     return {
         **closed_loop,
