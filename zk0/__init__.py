@@ -16,7 +16,9 @@ def app_fingerprint() -> str:
 
     Flower loads the app from the bundle ``flwr run`` submitted (its folder comes first on
     ``sys.path``), so the server and every client should report the same value; the server
-    sends its own and a client with other code refuses it, naming both.
+    sends its own and a client with other code refuses it, naming both. A simulation's Ray workers
+    can import the installed zk0 instead (seen with an editable install: an edit to zk0's source
+    while a run was going made every client refuse the server's code in the next round).
     """
     digest = hashlib.sha256()
     for path in sorted(PACKAGE.rglob("*.py")):
