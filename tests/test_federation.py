@@ -1,4 +1,4 @@
-"""End to end: the real `flwr run` against a local simulation SuperLink, offline, 2 clients x 2 rounds."""
+"""End to end: the real `flwr run` against a local simulation SuperLink, offline, 2 clients."""
 
 from __future__ import annotations
 
@@ -37,17 +37,26 @@ def flower_env(tmp_path_factory):
         yield env
 
 
-def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
-    out = tmp_path / "outputs"
-    log = flwr_run(
-        flower_env,
-        f"num-server-rounds=2 local-steps=3 batch-size=4 checkpoint-interval=1 "
-        f"hf-repo-id='zk0-tests/federated-smolvla' output-dir='{out}'",
-        ONE_ACTOR,
-    )
-    runs = list(out.iterdir()) if out.exists() else []
+# Three short rounds, a checkpoint after each: every artifact is checked on this run, and the resume
+# test continues it from round 2 (each `flwr run` costs a minute of fixed start-up on 2 cores).
+THREE_ROUNDS = (
+    "num-server-rounds=3 local-steps=3 batch-size=4 checkpoint-interval=1 eval-batches=1"
+    " hf-repo-id='zk0-tests/federated-smolvla'"
+)
+
+
+@pytest.fixture(scope="module")
+def three_rounds(flower_env, tmp_path_factory) -> tuple[Path, str]:
+    """The run folder of one ``THREE_ROUNDS`` federation, and what `flwr run` printed."""
+    out = tmp_path_factory.mktemp("three-rounds")
+    log = flwr_run(flower_env, f"{THREE_ROUNDS} output-dir='{out}'", ONE_ACTOR)
+    runs = list(out.iterdir())
     assert len(runs) == 1, log[-3000:]
-    run = runs[0]
+    return runs[0], log
+
+
+def test_two_clients_three_rounds_write_every_artifact(three_rounds):
+    run, log = three_rounds
     server = run / "server"
     for name in [
         "server.log",
@@ -57,11 +66,12 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
         "round_0.json",
         "round_1.json",
         "round_2.json",
+        "round_3.json",
     ]:
         assert (server / name).stat().st_size > 0, name
     history = json.loads((server / "metrics_history.json").read_text())
     assert history["clients"] == {"0": "synth-so100-pickplace", "1": "synth-so100-stacking"}
-    assert [r["round"] for r in history["rounds"]] == [0, 1, 2]
+    assert [r["round"] for r in history["rounds"]] == [0, 1, 2, 3]
     last = history["rounds"][-1]
     assert set(last["clients"]) == {"0", "1"}, "clients are named by their short index, not node ids"
     for index, client in last["clients"].items():
@@ -75,19 +85,19 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
         assert 0.45 < client["train"]["update-bytes"] / last["global-arrays"]["bytes"] < 0.55
         client_dir = run / "clients" / f"client_{index}"
         client_log = (client_dir / "client.log").read_text()
-        assert "Round 2 train" in client_log and "Round 2 evaluate" in client_log
+        assert "Round 3 train" in client_log and "Round 3 evaluate" in client_log
         assert client_log.count("built SmolVLA") == 1, "policy and dataset are kept across rounds"
-        assert json.loads((client_dir / "round_2.json").read_text())["train"]["num-examples"] == 12
+        assert json.loads((client_dir / "round_3.json").read_text())["train"]["num-examples"] == 12
     assert {"policy-loss", "action-mse"} <= set(last["server-evaluate"])
     assert {"policy-loss", "action-mse"} <= set(last["aggregate-evaluate"])
     models = run / "models"
-    assert sorted(p.name for p in models.iterdir()) == ["best", "checkpoint_round_1", "checkpoint_round_2"]
+    assert sorted(p.name for p in models.iterdir()) == ["best", *(f"checkpoint_round_{r}" for r in (1, 2, 3))]
     best = last["best"]
     assert best["action-mse"] == min(r["server-evaluate"]["action-mse"] for r in history["rounds"])
     said = "no round beat the starting model" if best["round"] == 0 else f"models/best is round {best['round']}"
     assert said in log.split("Done in ")[-1]
 
-    checkpoint = models / "checkpoint_round_2"
+    checkpoint = models / "checkpoint_round_3"
     policy = SmolVLAPolicy.from_pretrained(checkpoint)
     trainable = [n for n, p in policy.named_parameters() if p.requires_grad]
     assert last["global-arrays"]["tensors"] == len(trainable) < len(list(policy.parameters()))
@@ -138,6 +148,36 @@ def test_two_clients_two_rounds_write_every_artifact(flower_env, tmp_path):
     saved = policy.state_dict()
     for name in trainable:
         assert (start[name].numpy() == saved[name].numpy()).all(), name
+
+
+def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_env, three_rounds, tmp_path):
+    """The server optimiser's state (outer Nesterov's momentum, the default) comes back from the
+    checkpoint, and each client's optimizer moments and data position from the state it kept at that
+    round: resumed after round 2, the run's round-3 model equals the uninterrupted run's, bit for bit."""
+    straight, log = three_rounds
+    assert (straight / "models" / "checkpoint_round_3").is_dir(), log[-3000:]
+    resumed_out = tmp_path / "resumed"
+    # What an interruption after round 2's checkpoint leaves: the folder without round 3's checkpoint
+    # and the clients' round-3 state (round 3's other files are rewritten by the resumed run).
+    interrupted = resumed_out / straight.name
+    shutil.copytree(straight, interrupted)
+    shutil.rmtree(interrupted / "models" / "checkpoint_round_3")
+    for state in interrupted.glob("clients/*/trainer_state/round_3.safetensors"):
+        state.unlink()
+    assert len(list(interrupted.glob("clients/*/trainer_state/round_2.safetensors"))) == 2
+    assert (interrupted / "models" / "checkpoint_round_2" / "server_optimiser.safetensors").is_file()
+
+    config = f"{THREE_ROUNDS} output-dir='{resumed_out}' resume-from='{interrupted}'"
+    log = flwr_run(flower_env, config, ONE_ACTOR)
+    assert (interrupted / "models" / "checkpoint_round_3").is_dir(), log[-3000:]
+    expected = load_file(straight / "models" / "checkpoint_round_3" / "model.safetensors")
+    resumed = load_file(interrupted / "models" / "checkpoint_round_3" / "model.safetensors")
+    assert set(resumed) == set(expected)
+    differ = [name for name in expected if not torch.equal(resumed[name], expected[name])]
+    assert not differ, f"{len(differ)} tensors differ, e.g. {differ[:3]}"
+    for client in ("client_0", "client_1"):
+        said = (interrupted / "clients" / client / "client.log").read_text()
+        assert "Continuing the resumed run at batch 6 with the optimizer state of round 2." in said
 
 
 def test_a_run_that_only_gets_worse_hands_back_round_0(flower_env, tmp_path, registry):
@@ -192,38 +232,6 @@ def test_bf16_exchange_learns_like_fp32(flower_env, tmp_path):
         final[wire] = rounds[-1]["server-evaluate"]["action-mse"]
         assert final[wire] < 0.8 * rounds[0]["server-evaluate"]["action-mse"], "it learns at all"
     assert abs(final["bfloat16"] - final["float32"]) <= 0.10 * final["float32"], final
-
-
-def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_env, tmp_path):
-    """The server optimiser's state (outer Nesterov's momentum here) comes back from the checkpoint,
-    and each client's optimizer moments and data position from the state it kept at that round:
-    resumed after round 2, the run's round-3 model equals the uninterrupted run's, bit for bit."""
-    config = "num-server-rounds=3 local-steps=3 batch-size=4 checkpoint-interval=2 eval-batches=1"
-    config += " server-optimiser='nesterov'"
-    straight_out, resumed_out = tmp_path / "straight", tmp_path / "resumed"
-    log = flwr_run(flower_env, f"{config} output-dir='{straight_out}'", ONE_ACTOR)
-    (straight,) = straight_out.iterdir()
-    assert (straight / "models" / "checkpoint_round_3").is_dir(), log[-3000:]
-    # What an interruption after round 2's checkpoint leaves: the folder without round 3's checkpoint
-    # and the clients' round-3 state (round 3's other files are rewritten by the resumed run).
-    interrupted = resumed_out / straight.name
-    shutil.copytree(straight, interrupted)
-    shutil.rmtree(interrupted / "models" / "checkpoint_round_3")
-    for state in interrupted.glob("clients/*/trainer_state/round_3.safetensors"):
-        state.unlink()
-    assert len(list(interrupted.glob("clients/*/trainer_state/round_2.safetensors"))) == 2
-    assert (interrupted / "models" / "checkpoint_round_2" / "server_optimiser.safetensors").is_file()
-
-    log = flwr_run(flower_env, f"{config} output-dir='{resumed_out}' resume-from='{interrupted}'", ONE_ACTOR)
-    assert (interrupted / "models" / "checkpoint_round_3").is_dir(), log[-3000:]
-    expected = load_file(straight / "models" / "checkpoint_round_3" / "model.safetensors")
-    resumed = load_file(interrupted / "models" / "checkpoint_round_3" / "model.safetensors")
-    assert set(resumed) == set(expected)
-    differ = [name for name in expected if not torch.equal(resumed[name], expected[name])]
-    assert not differ, f"{len(differ)} tensors differ, e.g. {differ[:3]}"
-    for client in ("client_0", "client_1"):
-        said = (interrupted / "clients" / client / "client.log").read_text()
-        assert "Continuing the resumed run at batch 6 with the optimizer state of round 2." in said
 
 
 def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_keeps_learning(flower_env, tmp_path):
