@@ -72,6 +72,19 @@ zk0_ensure_gl() {
     zk0_log "No EGL or OSMesa library found and not installable here; the simulator (zk0.sim) cannot render until 'libegl1' or 'libosmesa6' is installed."
 }
 
+# The report's browser test (tests/test_report.py) renders report.html in headless Chromium;
+# only ./test.sh asks for it (in CI its absence where this could install it fails that test).
+zk0_ensure_chromium() {
+    command -v chromium >/dev/null 2>&1 && return 0
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        zk0_log "Installing Chromium (the report's browser test renders report.html in it)..."
+        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1; then
+            return 0
+        fi
+    fi
+    zk0_log "Chromium not found and not installable here; the report's browser test is skipped."
+}
+
 zk0_ensure_venv() {
     local python stamp want home
     if [ ! -x "$ZK0_VENV/bin/python" ]; then

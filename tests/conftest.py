@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -15,6 +16,17 @@ os.environ["HF_HUB_OFFLINE"] = "1"
 # (the federations' servers and clients), or PyTorch's thread pools oversubscribe the cores.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("SVT_LOG", "1")
+
+
+def require_tool(command: str, package: str) -> None:
+    """Skip a test that needs Debian's ``package`` for ``command`` where it is missing, except in CI
+    on a machine where ``./test.sh`` installs it (root with apt-get): there its absence is a fault."""
+    if shutil.which(command):
+        return
+    message = f"{command} is not installed (apt-get install {package})"
+    if os.environ.get("CI") and os.getuid() == 0 and shutil.which("apt-get"):
+        pytest.fail(f"{message}, though ./test.sh installs it on this machine (root with apt-get)")
+    pytest.skip(message)
 
 
 @pytest.fixture(scope="session", autouse=True)

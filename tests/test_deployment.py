@@ -28,7 +28,9 @@ MARKER = "Opened (submitted copy)"
 
 @pytest.fixture(scope="module")
 def federation(tmp_path_factory):
-    with loopback_federation(tmp_path_factory.mktemp("deployment"), ROBOTS, cpus=1) as fed:
+    """Two robots' SuperNodes with `zk0 supernode`'s defaults, on a temporary directory that starts
+    empty: each registers there (to share the CPUs) before any warm worker exists, as on a new machine."""
+    with loopback_federation(tmp_path_factory.mktemp("deployment"), ROBOTS) as fed:
         yield fed
 
 
@@ -107,7 +109,10 @@ def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federat
         assert workers_under(federation.root / robot, "zk0.forkserver"), "the SuperNode's fork server runs"
         assert "fork server exited" not in federation.log(robot)
     assert not list(run_dir.glob("clients/*/client.log"))
-    # The warm worker built each client once; later messages found it built and continued training.
+    # The warm worker built each client once; later messages found it built and continued training,
+    # in the folder the SuperNodes created first when they registered.
+    private = Path(federation.env["TMPDIR"]) / f"zk0-{os.getuid()}"
+    assert (private / "supernodes").is_dir() and (private.stat().st_mode & 0o777) == 0o700
     for number in (2, 3):
         for index in ("0", "1"):
             client = record["rounds"][number]["clients"][index]

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-import shutil
 import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
 
 import pytest
 
+from tests.conftest import require_tool
 from zk0.artifacts import History
 from zk0.report import REPORT_FILE, write_report
 
@@ -115,10 +115,10 @@ def test_the_reports_numbers_are_the_histories(tmp_path):
     assert f"--policy.path={run_dir / 'models' / 'best'}" in best_line and "Round 2" in best_line
 
 
-@pytest.mark.skipif(not shutil.which("chromium"), reason="Chromium is not installed (apt-get install chromium)")
 def test_chromium_renders_the_report_with_no_console_error(tmp_path):
     """Chromium (headless) loads the report from disk: no console message, every chart decoded to
     its real size, both tables laid out; a screenshot is taken."""
+    require_tool("chromium", "chromium")
     run_dir = tmp_path / "2026-11-30_12-00-00"
     history, config = a_run(run_dir)
     report = write_report(run_dir, history, config, {"round": 2, "action-mse": 250.5}, 3)

@@ -11,6 +11,7 @@ import tempfile
 import threading
 
 import numpy as np
+import pytest
 import torch
 from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
 
@@ -50,7 +51,7 @@ def test_message_contents_cross_the_socket_unchanged():
 def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
     tmp_path, monkeypatch, registry, flower_task, isolated_logging
 ):
-    """A socket folder others may enter is refused; the message is answered in this process instead."""
+    """A socket folder others may write in is refused; the message is answered in this process instead."""
     from loguru import logger
 
     from zk0.client import build_client
@@ -61,7 +62,7 @@ def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     shared = tmp_path / f"zk0-{os.getuid()}"
     shared.mkdir()
-    shared.chmod(0o755)
+    shared.chmod(0o777)
     run = RunConfig(batch_size=2, local_steps=1)
     server = build_client(run, registry.clients[0], registry.model_cameras())
     config = {
@@ -91,3 +92,35 @@ def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
     assert metrics["num-examples"] == 2 and metrics["worker-s"] == 0.0
     assert set(decode(reply["arrays"], run.wire_dtype)) == set(server.bundle.trainable_names)
     assert not list(shared.iterdir()), "no worker was started in the shared folder"
+
+
+def test_the_private_folder_is_private_whoever_creates_it_first(tmp_path, monkeypatch):
+    """On a new machine a SuperNode registers before any worker starts: the folder it creates is the
+    workers' private folder (mode 0700), one of this user's left readable is tightened, and one that
+    others may write in, or a link, is refused in one sentence."""
+    from zk0 import machine
+    from zk0.errors import Zk0Error
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    private = tmp_path / f"zk0-{os.getuid()}"
+    machine.register(machine.registry_folder())  # first use: a SuperNode registers
+    assert (private.stat().st_mode & 0o777) == 0o700 and (private / "supernodes" / str(os.getpid())).is_file()
+    assert worker.socket_path(2**64 - 1, 7) == private / "ffffffffffffffff-7.sock"
+
+    private.chmod(0o755)  # as zk0 before this fix left it
+    worker.socket_path(1, 2)
+    assert (private.stat().st_mode & 0o777) == 0o700
+
+    private.chmod(0o777)
+    with pytest.raises(worker.WorkerUnavailable, match="not a private folder of this user"):
+        worker.socket_path(1, 2)
+    with pytest.raises(Zk0Error, match=r"^\S+ is not a private folder of this user .*set TMPDIR"):
+        machine.registry_folder()
+
+    linked = tmp_path / "linked"
+    linked.mkdir()
+    (linked / private.name).symlink_to(private)
+    monkeypatch.setattr(tempfile, "tempdir", str(linked))
+    private.chmod(0o700)
+    with pytest.raises(worker.WorkerUnavailable, match="not a private folder of this user"):
+        worker.socket_path(1, 2)

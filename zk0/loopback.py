@@ -15,6 +15,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -104,9 +105,13 @@ class LoopbackFederation:
 def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None = None):
     """A running TLS federation under ``root``: ``supernodes`` maps key names to datasets.
 
-    Also creates a key pair named ``stranger`` that is never registered. Stops everything on exit.
+    Also creates a key pair named ``stranger`` that is never registered. Its processes get a
+    temporary directory of their own that starts empty, as a new machine's does (what a
+    SuperNode keeps there, such as its warm worker's folder, is created in the order a first
+    start creates it). Stops everything and removes that directory on exit.
     """
     make_federation_certs(root / "certs", [], [*supernodes, "stranger"])
+    machine_tmp = Path(tempfile.mkdtemp(prefix="zk0-machine-"))  # short: the worker's socket lives there
     port = free_port()
     home = root / "flwr-home"
     home.mkdir(parents=True, exist_ok=True)
@@ -114,11 +119,14 @@ def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None
         f'[superlink]\ndefault = "{CONNECTION}"\n\n[superlink.{CONNECTION}]\naddress = "127.0.0.1:{port}"\n'
         f'root-certificates = "{root / "certs" / "ca.crt"}"\n'
     )
-    env = {**os.environ, "FLWR_HOME": str(home), "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}"}
+    env = {
+        **os.environ, "FLWR_HOME": str(home), "PATH": f"{BIN}{os.pathsep}{os.environ['PATH']}",
+        "TMPDIR": str(machine_tmp),
+    }  # fmt: skip
     env.pop("HF_TOKEN", None)
     fed = LoopbackFederation(root, env, f"127.0.0.1:{port}")
-    fed.start("superlink", "superlink", "--certs", "certs", "--address", fed.address)
     try:
+        fed.start("superlink", "superlink", "--certs", "certs", "--address", fed.address)
         deadline = time.monotonic() + 120
         while fed.flwr("supernode", "list").returncode != 0:
             if time.monotonic() > deadline or fed.processes["superlink"].poll() is not None:
@@ -130,3 +138,4 @@ def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None
         yield fed
     finally:
         fed.stop_all()
+        shutil.rmtree(machine_tmp, ignore_errors=True)

@@ -12,23 +12,52 @@ beside it halves both from their next message on.
 from __future__ import annotations
 
 import os
+import stat
 import tempfile
 from pathlib import Path
 
 import psutil
 
+from zk0.errors import Zk0Error
+
 SHARED = "ZK0_SUPERNODES"  # environment: the folder where this machine's SuperNodes register
 FIXED = "ZK0_CPUS"  # environment: `zk0 supernode --cpus`
 
 
+def private_folder() -> Path:
+    """This user's folder in the temporary directory (``<tmp>/zk0-<uid>``), mode 0700.
+
+    The warm workers' sockets live here, so only this user may enter it. Whoever gets here
+    first creates it (a SuperNode registering, or a worker starting): ``mkdir(parents=True)``
+    of a folder below it would give it the default mode 0755, and that order is exactly what a
+    fresh machine has. A folder of this user's that others may only read is tightened; one of
+    another user's, a link, or one others may write in (they could have put a socket there)
+    is refused in one sentence.
+    """
+    folder = Path(tempfile.gettempdir()) / f"zk0-{os.getuid()}"
+    try:
+        folder.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    info = folder.lstat()
+    if stat.S_ISLNK(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o022:
+        raise Zk0Error(
+            f"{folder} is not a private folder of this user (a link, another user's, or writable by others); "
+            "remove it or set TMPDIR to a folder of your own."
+        )
+    if stat.S_IMODE(info.st_mode) != 0o700:
+        folder.chmod(0o700)
+    return folder
+
+
 def registry_folder() -> Path:
     """Where this user's SuperNodes on this machine register."""
-    return Path(tempfile.gettempdir()) / f"zk0-{os.getuid()}" / "supernodes"
+    return private_folder() / "supernodes"
 
 
 def register(folder: Path, pid: int | None = None) -> None:
     """Count process ``pid`` (default: this one) among the SuperNodes sharing this machine."""
-    folder.mkdir(parents=True, exist_ok=True)
+    folder.mkdir(exist_ok=True)
     (folder / str(pid or os.getpid())).touch()
 
 

@@ -27,7 +27,6 @@ import socket
 import struct
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from flwr.proto.message_pb2 import Context as ProtoContext
 from flwr.proto.recorddict_pb2 import RecordDict as ProtoRecordDict
 from loguru import logger
 
+from zk0 import machine
 from zk0.errors import Zk0Error
 
 IDLE_S = 3600.0  # Flower's default phase timeout: a gpu-serial round can keep a client waiting this long
@@ -54,12 +54,12 @@ def enabled(node_config: dict) -> bool:
 
 def socket_path(run_id: int, node_id: int) -> Path:
     """One socket per run and node, in a folder only this user may enter (refused otherwise)."""
-    folder = Path(tempfile.gettempdir()) / f"zk0-{os.getuid()}"
-    folder.mkdir(mode=0o700, exist_ok=True)
-    info = folder.lstat()
-    if info.st_uid != os.getuid() or info.st_mode & 0o077 or folder.is_symlink():
-        raise WorkerUnavailable(f"{folder} is not a private folder of this user; not starting a worker there")
-    return folder / f"{run_id}-{node_id}.sock"
+    try:
+        folder = machine.private_folder()
+    except Zk0Error as err:
+        raise WorkerUnavailable(f"{str(err).rstrip('.')}; not starting a worker there") from None
+    # Hexadecimal: Flower's ids are 64-bit, and a Unix socket's path has 104-108 bytes in all.
+    return folder / f"{run_id:x}-{node_id:x}.sock"
 
 
 # Framing: each part is an 8-byte big-endian length and its bytes. A RecordDict travels as a JSON
