@@ -10,7 +10,7 @@ import torch
 from lerobot.datasets import dataset_reader
 from loguru import logger
 
-from zk0.assets import default_cache_root
+from zk0.cache import default_cache_root
 from zk0.config import RunConfig
 from zk0.data import _make, open_metadata
 from zk0.frames import attach_frame_cache, cache_key

@@ -7,8 +7,6 @@ import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import require_tool
 from zk0.artifacts import History
 from zk0.report import REPORT_FILE, write_report

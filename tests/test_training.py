@@ -159,7 +159,7 @@ def test_a_compiled_policy_keeps_fedprox_and_its_compiled_code(registry, monkeyp
     trainable gradient, and the compiled code goes to $ZK0_CACHE/inductor for later processes."""
     import os
 
-    from zk0.assets import default_cache_root
+    from zk0.cache import default_cache_root
     from zk0.client import build_client
     from zk0.data import prepare_batch
 

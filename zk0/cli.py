@@ -18,11 +18,11 @@ from zk0.assets import (
     OFFLINE_BACKBONES,
     TINY_BACKBONE,
     AssetError,
-    default_cache_root,
     ensure_backbone,
     ensure_dataset,
 )
 from zk0.assets.datasets import SPECS
+from zk0.cache import default_cache_root
 from zk0.certs import make_federation_certs
 from zk0.config import RunConfig, from_run_config
 from zk0.deploy import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env

@@ -26,7 +26,7 @@ from loguru import logger
 from torch.utils.data import DataLoader
 
 from zk0 import machine
-from zk0.assets import default_cache_root
+from zk0.cache import default_cache_root
 from zk0.config import RunConfig
 from zk0.errors import Zk0Error
 from zk0.frames import attach_frame_cache

@@ -24,7 +24,8 @@ from lerobot.utils.feature_utils import dataset_to_policy_features
 from transformers import AutoConfig
 
 from zk0 import adapters
-from zk0.assets import OFFLINE_BACKBONES, default_cache_root, ensure_backbone
+from zk0.assets import OFFLINE_BACKBONES, ensure_backbone
+from zk0.cache import default_cache_root
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.errors import Zk0Error
 from zk0.registry import DatasetEntry

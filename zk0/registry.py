@@ -16,8 +16,8 @@ import draccus
 
 from zk0.assets import generated_dataset
 from zk0.assets.datasets import SPECS
-from zk0.sim.tasks import SIM_SPECS
 from zk0.errors import Zk0Error
+from zk0.sim.tasks import SIM_SPECS
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("client", "server")

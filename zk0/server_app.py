@@ -55,7 +55,7 @@ class ServerEvaluation:
         self.videos = run_dir / "server" / "videos"
         self.closed_loop = None
         if run.sim_eval_episodes:
-            from zk0.sim.closed_loop import ClosedLoop  # MuJoCo and a renderer: only when asked for
+            from zk0.closed_loop import ClosedLoop  # MuJoCo and a renderer: only when asked for
 
             height, width, _ = split.meta.features["observation.images.front"]["shape"]
             self.closed_loop = ClosedLoop(split.entry.name, run.sim_eval_episodes, run.seed, height, width)

@@ -19,6 +19,7 @@ from pathlib import Path
 from filelock import FileLock
 
 from zk0.assets.datasets import SPECS
+from zk0.cache import default_cache_root
 from zk0.config import OFFLINE_MODELS
 from zk0.errors import Zk0Error
 from zk0.sim.tasks import RECORDER_VERSION, SIM_SPECS
@@ -35,14 +36,6 @@ OFFLINE_BACKBONES = dict(zip(OFFLINE_MODELS, BACKBONES, strict=True))
 
 class AssetError(Zk0Error):
     """A bad asset request; the message is one sentence naming the bad value."""
-
-
-def default_cache_root() -> Path:
-    """``$ZK0_CACHE``, else ``$XDG_CACHE_HOME/zk0``, else ``~/.cache/zk0``."""
-    if os.environ.get("ZK0_CACHE"):
-        return Path(os.environ["ZK0_CACHE"]).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(xdg) / "zk0"
 
 
 def _writable_root(root: Path) -> Path:

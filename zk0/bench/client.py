@@ -8,8 +8,9 @@ import json
 from pathlib import Path
 
 from zk0.artifacts import save_checkpoint
-from zk0.assets import default_cache_root, ensure_dataset
+from zk0.assets import ensure_dataset
 from zk0.assets.datasets import SPECS
+from zk0.cache import default_cache_root
 from zk0.client import build_client
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data import open_metadata

@@ -16,17 +16,15 @@ from __future__ import annotations
 
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+from zk0.bench.lora import lora_check
+from zk0.bench.models import federate, server_rows
 from zk0.errors import OneSentenceParser, positive
 from zk0.registry import load_registry
-from zk0.simulation import run_federation
-
-EVAL_ALL = 1000  # eval-batches: every held-out batch of the synthetic datasets
 
 
 def actions(entry, episodes: list[int] | None = None) -> np.ndarray:
@@ -45,39 +43,6 @@ def mean_action_baseline(eval_dataset: str, eval_episodes: int) -> float:
     mean = np.concatenate(train).mean(axis=0)
     target = actions(registry.get(eval_dataset))
     return float(((target - mean) ** 2).mean())
-
-
-def federate(args, rounds: int, name: str, **keys) -> dict | None:
-    """One federation of the learning check (``keys``: more run-config keys); its metric history."""
-    settings = {
-        "num-server-rounds": rounds,
-        "local-steps": args.local_steps,
-        "batch-size": args.batch_size,
-        "lr": args.lr,
-        "eval-batches": EVAL_ALL,
-        "checkpoint-interval": rounds,
-        "min-train-clients": args.clients,
-        "wire-dtype": args.wire_dtype,
-        **keys,
-    }
-    # Strings as TOML basic strings (JSON's escaping): a regex's backslashes reach the run config as typed.
-    run_config = " ".join(f"{k}={json.dumps(v)}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
-    started = time.perf_counter()
-    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, f"bench: {name}")
-    if history is not None:
-        history.update({"wall-s": time.perf_counter() - started, "config": run_config})
-    return history
-
-
-def server_rows(history: dict) -> list[dict]:
-    """The server's evaluation of every evaluated round."""
-    return [{"round": r["round"], **r["server-evaluate"]} for r in history["rounds"] if r.get("server-evaluate")]
-
-
-def sent_bytes(history: dict) -> int:
-    """Bytes one client sent in the last round (its update; the global model it got is the same size)."""
-    last = history["rounds"][-1]["clients"].values()
-    return max(int(c["train"]["update-bytes"]) for c in last if "update-bytes" in c.get("train", {}))
 
 
 def mean_action_check(args) -> int:
@@ -130,8 +95,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.peft == "lora":
-        from zk0.bench.lora import lora_check  # it builds on this module's federations
-
         return lora_check(args)
     return mean_action_check(args)
 

@@ -22,8 +22,16 @@ import argparse
 import json
 from pathlib import Path
 
-from zk0.bench.learning import EVAL_ALL, federate, sent_bytes, server_rows
-from zk0.bench.study import SERVER, centralised, evaluate_all, evaluation_sets
+from zk0.bench.models import (
+    EVAL_ALL,
+    SERVER,
+    centralised,
+    evaluate_all,
+    evaluation_sets,
+    federate,
+    sent_bytes,
+    server_rows,
+)
 from zk0.client import build_client
 from zk0.config import LORA_FULL_MODULES, from_run_config
 from zk0.policy import snapshot
@@ -48,9 +56,14 @@ def centralised_mse(args: argparse.Namespace, start: str, keys: dict) -> float:
     """Server action MSE of one variant trained centrally from ``start`` on the federation's samples."""
     run = from_run_config(
         {
-            "model": start, "num-server-rounds": args.rounds, "local-steps": args.local_steps,
-            "batch-size": args.batch_size, "lr": args.lr, "eval-batches": EVAL_ALL,
-            "min-train-clients": args.clients, **keys,
+            "model": start,
+            "num-server-rounds": args.rounds,
+            "local-steps": args.local_steps,
+            "batch-size": args.batch_size,
+            "lr": args.lr,
+            "eval-batches": EVAL_ALL,
+            "min-train-clients": args.clients,
+            **keys,
         }
     )
     registry = load_registry(run.registry)

@@ -18,7 +18,6 @@ The bad client is a real ClientApp, zk0's own with its reply scaled (``scaled_cl
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import sys

@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from zk0.bench.client import write_json
-from zk0.bench.study import generate
+from zk0.bench.models import generate
 from zk0.client import build_client
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data import open_metadata
@@ -35,7 +35,7 @@ REGISTRIES = (REGISTRY, "configs/sim-cube-registry.toml")  # from the frames; to
 
 def rollout_rows(run: RunConfig, steps: int, every: int, episodes: int, videos: Path | None) -> list[dict]:
     """Train centrally for ``steps`` and roll out after every ``every``: one row per rollout."""
-    from zk0.sim.closed_loop import ClosedLoop  # MuJoCo: loaded only to roll out
+    from zk0.closed_loop import ClosedLoop  # MuJoCo: loaded only to roll out
 
     registry = load_registry(run.registry)
     server = registry.get(run.server_eval_dataset)

@@ -44,25 +44,30 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import torch
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from zk0.assets import ensure_dataset
-from zk0.bench.learning import EVAL_ALL, federate
-from zk0.client import ClientSession, build_client
+from zk0.bench.models import (
+    EVAL_ALL,
+    SERVER,
+    Weights,
+    centralised,
+    closed_loop_all,
+    evaluate_all,
+    evaluation_sets,
+    federate,
+    generate,
+    local_only,
+)  # fmt: skip
+from zk0.client import build_client
 from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.data import eval_loader, open_evaluation, open_metadata
 from zk0.errors import OneSentenceParser, positive
-from zk0.policy import PolicyBundle, build_policy, set_trainable, snapshot
-from zk0.registry import PROJECT_ROOT, Registry, load_registry
+from zk0.policy import PolicyBundle, snapshot
+from zk0.registry import PROJECT_ROOT, load_registry
 from zk0.resume import find_resume_point
-from zk0.sim.tasks import SIM_SPECS
-from zk0.training import PooledTrainer, evaluate
 
 SETTINGS = {
     "mild": "",
@@ -71,7 +76,6 @@ SETTINGS = {
     "sim-cube": str(PROJECT_ROOT / "configs" / "sim-cube-registry.toml"),  # the same, told where the cube is
 }
 SIM_SETTINGS = ("sim", "sim-cube")
-SERVER = "server"
 EQUAL_STEPS = "equal steps"  # centralised at the federation's sequential steps, batch = clients x batch
 # The study's federations: label -> server-optimiser (only FedProx has a proximal term).
 FEDERATIONS = {
@@ -82,7 +86,6 @@ FEDERATIONS = {
     "FedAdam": "fedadam",
     "FedYogi": "fedyogi",
 }
-Weights = dict[str, torch.Tensor]
 
 
 def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
@@ -104,16 +107,6 @@ def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
 def progress(setting: str, started: float) -> Callable[[str], None]:
     """Says one line as each model is trained or judged: a sim study runs for an hour before its tables."""
     return lambda done: print(f"  {setting}: {done} ({time.perf_counter() - started:.0f} s)", flush=True)
-
-
-def generate(registry: Registry, demos: int) -> None:
-    """The setting's generated datasets (the non-IID and simulated ones are not in `zk0 assets`);
-    all of them, as the server checks every client dataset of the registry before round 1. A
-    simulated client records ``demos`` demonstrations."""
-    for entry in registry.entries:
-        if entry.synthetic:
-            simulated = entry.name in SIM_SPECS and entry.role == "client"
-            ensure_dataset(entry.name, episodes=demos if simulated else None)
 
 
 def federated_models(
@@ -142,83 +135,6 @@ def federated_models(
         models[label] = (final, history)
         say(f"federation {label} trained")
     return models
-
-
-def centralised(
-    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str], wide: bool = False
-) -> tuple[Weights, dict[str, int]]:
-    """One policy trained on every client's batches, its weights and the samples it took from each client.
-
-    By default a batch from each client in turn, for as many steps as all clients take together.
-    With ``wide`` (the equal-steps baseline), only the federation's sequential steps (rounds x local
-    steps), each on a batch from every client together (batch = clients x batch): the same samples
-    in a quarter of the steps, so its gap to the default is what fewer sequential steps cost, and
-    the federation's gap to it is what federating costs beyond that."""
-    clients = len(sessions)
-    if wide:
-        pooled_run = replace(run, batch_size=run.batch_size * clients)
-    else:
-        pooled_run = replace(run, local_steps=run.local_steps * clients)
-    first = sessions[0]
-    bundle = build_policy(pooled_run, first.split.meta, first.split.entry, cameras)
-    set_trainable(bundle, start)
-    trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled_run, wide=wide)
-    trainer.fit(pooled_run.total_steps, mu=0.0, global_step=0)
-    return snapshot(bundle), dict(trainer.samples_from)
-
-
-def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
-    """One client alone, for the steps it takes in the federation."""
-    set_trainable(session.bundle, start)
-    session.trainer.fit(run.total_steps, mu=0.0, global_step=0)
-    return snapshot(session.bundle)
-
-
-def evaluation_sets(sessions: list[ClientSession], registry: Registry, run: RunConfig) -> dict:
-    """Column name -> (bundle, split, loader): each client's held-out episodes with that client's own
-    processors, and the server's evaluation set with the server's, as the federation evaluates."""
-    columns = {f"client {s.index}": (s.bundle, s.split, s.eval_batches) for s in sessions}
-    entry = registry.get(run.server_eval_dataset)
-    meta = open_metadata(entry)
-    bundle = build_policy(run, meta, entry, registry.model_cameras())
-    split = open_evaluation(entry, meta, bundle.policy.config, run)
-    columns[SERVER] = (bundle, split, eval_loader(split.evaluation, run))
-    return columns
-
-
-def evaluate_all(models: dict[str, Weights], columns: dict, run: RunConfig) -> dict[str, dict[str, dict]]:
-    """Every model on every evaluation set: {model: {column: {action-mse, policy-loss}}}."""
-    matrix: dict[str, dict[str, dict]] = {}
-    for label, weights in models.items():
-        for column, (bundle, split, loader) in columns.items():
-            set_trainable(bundle, weights)
-            m = evaluate(bundle, split, loader, run.eval_batches, run.seed, run.max_skip_fraction)
-            matrix.setdefault(label, {})[column] = {"action-mse": m["action-mse"], "policy-loss": m["policy-loss"]}
-    return matrix
-
-
-def closed_loop_all(
-    models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int, say: Callable[[str], None]
-) -> dict:
-    """Every trained model's success in closed loop, in each evaluation set's conditions (the server's
-    span, and each client's own set-up), with that set's processors: {model: {column: rates}}. The
-    untrained start is rolled out in the server's conditions only."""
-    from zk0.sim.closed_loop import ClosedLoop  # MuJoCo: only for the simulated setting
-
-    matrix: dict[str, dict[str, dict]] = {label: {} for label in models}
-    for column, (bundle, split, _) in columns.items():
-        height, width, _ = split.meta.features["observation.images.front"]["shape"]
-        loop = ClosedLoop(split.entry.name, episodes, run.seed, height, width)
-        try:
-            for label, weights in models.items():
-                if label == "start" and column != SERVER:
-                    continue
-                set_trainable(bundle, weights)
-                matrix[label][column] = loop(bundle)
-        finally:
-            loop.close()
-        say(f"every model rolled out in {column}'s conditions")
-    return matrix
 
 
 def federations(rows: dict) -> list[str]:
@@ -327,8 +243,10 @@ def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
     s = result["summary"]
     for label, ratio in s["vs-centralised"].items():
         print(f"{label} / centralised, server action MSE: {ratio:.3f} (target <= 1.5 at 8 rounds, 1.1 at 24)")
-    print(f"equal steps / centralised, server action MSE: {s['equal-steps-vs-centralised']:.3f} "
-          "(what a quarter of the sequential steps costs with the same samples)")
+    print(
+        f"equal steps / centralised, server action MSE: {s['equal-steps-vs-centralised']:.3f} "
+        "(what a quarter of the sequential steps costs with the same samples)"
+    )
     for label, ratio in s["vs-equal-steps"].items():
         print(f"{label} / equal steps, server action MSE: {ratio:.3f} (what federating costs beyond that)")
     labels = federations(matrix)

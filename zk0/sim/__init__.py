@@ -1,5 +1,6 @@
-"""The SO-101 pick-up task in MuJoCo: scene, gymnasium env, scripted expert, demonstrations, and
-the closed-loop evaluation that judges a policy by whether it picks up the cube.
+"""The SO-101 pick-up task in MuJoCo: scene, gymnasium env (a lerobot ``EnvConfig``), scripted
+expert and demonstrations. It knows nothing of SmolVLA or the federation: zk0.closed_loop rolls
+a policy out in it.
 
 MuJoCo renders headless through EGL unless ``MUJOCO_GL`` says otherwise; it reads the variable
 when its first renderer is made, so it is set here, before any of these modules loads MuJoCo.

@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from zk0.assets.datasets import JOINT_NAMES
-from zk0.sim.env import CUBE_STATE, PickCubeEnv
+from zk0.sim.env import CUBE_STATE, JOINTS, PickCubeEnv
 from zk0.sim.expert import PickExpert
 from zk0.sim.tasks import DemoSpec, SimTask
+
+JOINT_NAMES = tuple(f"{joint}.pos" for joint in JOINTS)  # as lerobot's SO-101 follower names its motors
 
 CAMERAS = ("front", "wrist")
 

