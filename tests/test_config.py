@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 import tomllib
 
 import pytest
@@ -15,6 +16,28 @@ def test_defaults_equal_the_pyproject_table():
     table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
     assert from_run_config(table) == RunConfig()
     assert set(table) == set(RunConfig().to_flat())
+
+
+def documented_defaults(page: str) -> list[tuple[str, object]]:
+    """(key, default) of each row of a page's run-config tables: | `key` | `TOML value` | meaning |."""
+    text = (PROJECT_ROOT / page).read_text()
+    rows = re.findall(r"^\| `([a-z0-9-]+)` \| `([^`]*)` \|", text, flags=re.MULTILINE)
+    return [(key, tomllib.loads(f"v = {value}")["v"]) for key, value in rows]
+
+
+def test_the_configuration_page_documents_every_key_once_with_its_default():
+    table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
+    documented = documented_defaults("docs/configuration.md")
+    keys = [key for key, _ in documented]
+    assert sorted(keys) == sorted(table), "docs/configuration.md and [tool.flwr.app.config] name the same keys"
+    assert len(keys) == len(set(keys)), f"documented twice: {sorted({k for k in keys if keys.count(k) > 1})}"
+    assert {key: default for key, default in documented} == table
+
+
+def test_the_readme_shows_ten_keys_with_their_defaults():
+    table = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["flwr"]["app"]["config"]
+    documented = documented_defaults("README.md")
+    assert len(documented) == 10 and all(table[key] == default for key, default in documented), documented
 
 
 def test_overrides_are_applied():

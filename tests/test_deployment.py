@@ -85,6 +85,21 @@ def test_bad_supernode_options_fail_in_one_sentence_before_connecting(tmp_path):
         assert len(done.stderr.strip().splitlines()) == 1 and "Traceback" not in done.stderr
 
 
+def test_a_supernode_refuses_a_temporary_folder_others_may_write_in(tmp_path):
+    """The warm workers' sockets live in <tmp>/zk0-<uid>: one that others may write in (they could
+    have put a socket there) stops `zk0 supernode` in one sentence, before it connects."""
+    shared = tmp_path / f"zk0-{os.getuid()}"
+    shared.mkdir()
+    shared.chmod(0o777)
+    command = [tool("zk0"), "supernode", "--superlink", "127.0.0.1:1", "--insecure", "--dataset", "synth-so100-pickplace"]
+    done = subprocess.run(
+        [*command, "--dry-run"], capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path,
+        env={**os.environ, "TMPDIR": str(tmp_path)},
+    )  # fmt: skip
+    assert done.returncode == 2 and done.stderr.startswith(f"zk0: {shared} is not a private folder of this user")
+    assert len(done.stderr.strip().splitlines()) == 1 and "TMPDIR" in done.stderr
+
+
 def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federation):
     stranger = federation.supernode("stranger", "synth-so101-reach", "--key", "stranger")
     plaintext = federation.supernode("plaintext", "synth-so101-sorting", "--insecure")

@@ -26,7 +26,7 @@ from zk0.bench.__main__ import BENCHMARKS
 from zk0.cli import main as zk0_main
 from zk0.registry import PROJECT_ROOT
 
-DOCS = [PROJECT_ROOT / "README.md", *sorted((PROJECT_ROOT / "docs").glob("*.md"))]
+DOCS = [PROJECT_ROOT / "README.md", *sorted((PROJECT_ROOT / "docs").glob("**/*.md"))]
 BIN = Path(sys.executable).parent
 # Exercised elsewhere, or not runnable here; each with the reason.
 ELSEWHERE = {
