@@ -3,13 +3,14 @@
 # temporary directory and a Flower home that start empty, as a new machine's do (an earlier
 # run's leftovers once hid a fault that every new machine showed). Both are removed afterwards.
 #   ./test.sh          the whole suite (~15 min on 2 cores)
-#   ./test.sh --fast   everything but the end-to-end federations and deployments (~2 min)
+#   ./test.sh --fast   all but the federations, deployments and other slow tests (markers
+#                      in pyproject.toml; ~2 min)
 # Other arguments go to pytest, e.g. ./test.sh --fast -k config
 set -euo pipefail
 source "$(dirname "$0")/scripts/setup.sh"
 args=()
 for arg in "$@"; do
-    if [ "$arg" = --fast ]; then args+=(-m "not e2e and not deployment"); else args+=("$arg"); fi
+    if [ "$arg" = --fast ]; then args+=(-m "not e2e and not deployment and not slow"); else args+=("$arg"); fi
 done
 # Short names: Ray's and the warm worker's Unix sockets live below TMPDIR (108 bytes a path).
 fresh_tmp="$(mktemp -d)"

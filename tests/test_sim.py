@@ -110,6 +110,7 @@ def test_recorded_demonstrations_pass_preflight_and_train(tmp_path):
     assert metrics["num-examples"] == 4 and np.isfinite(metrics["train-loss"])
 
 
+@pytest.mark.slow
 def test_the_sim_learning_benchmark_trains_centrally_and_rolls_out_along_the_way(tmp_path):
     """`python -m zk0.bench sim-learning`'s loop: pooled training of tiny-128, a rollout after every
     `every` steps in the server's conditions, each with its rates and its first episode's video."""

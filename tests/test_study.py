@@ -122,6 +122,7 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow
 def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_them_up():
     """The sim setting's closed-loop matrix (the federations that feed it are the other settings'
     code, tested end to end above): every model in the server's conditions and each client's own,

@@ -154,6 +154,7 @@ def test_a_stale_session_catches_up_with_a_newer_one(client_parts):
     assert stale._next_batch()["index"].tolist() == newer._next_batch()["index"].tolist()
 
 
+@pytest.mark.slow
 def test_a_compiled_policy_keeps_fedprox_and_its_compiled_code(registry, monkeypatch):
     """``compile = true``: lerobot compiles SmolVLA's forward; FedProx's hooks still reach every
     trainable gradient, and the compiled code goes to $ZK0_CACHE/inductor for later processes."""
