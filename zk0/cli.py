@@ -136,9 +136,9 @@ def _supernode(args: argparse.Namespace) -> int:
     if args.cpus is not None and not 1 <= args.cpus <= cpus:
         raise Zk0Error(f"--cpus got {args.cpus}; expected a number from 1 to {cpus}, the CPUs this process may use.")
     output_dir = writable_folder(Path(args.output_dir).expanduser().resolve(), "--output-dir")
+    supernodes = machine.registry_folder()  # a temporary folder others may write in: refused before anything
     config = node_config(args.dataset, output_dir, not args.no_warm_worker)
     command = supernode_command(args.superlink, certs, args.key, config, args.runtime_port)
-    supernodes = machine.registry_folder()
     env = {**thread_env(args.cpus, supernodes), **SUPEREXEC_POLL}
     if args.dry_run:
         print(" ".join(f"{k}={v}" for k, v in env.items()), shlex.join(command))
