@@ -16,10 +16,10 @@ from zk0.assets import ensure_dataset
 from zk0.assets.datasets import JOINT_NAMES
 from zk0.config import ConfigError, from_run_config
 from zk0.registry import load_registry
-from zk0.sim.env import HOLD_STEPS, JOINTS, PickCubeEnv, to_lerobot, to_mujoco
+from zk0.sim.env import APART_M, HOLD_STEPS, JOINTS, PickCubeEnv, to_lerobot, to_mujoco
 from zk0.sim.expert import PickExpert
 from zk0.sim.record import demonstrate, episode_seed
-from zk0.sim.tasks import SIM_SPECS
+from zk0.sim.tasks import SIM_SPECS, SimTask
 
 REGISTRY = "configs/sim-registry.toml"
 CUBE_REGISTRY = "configs/sim-cube-registry.toml"
@@ -54,6 +54,27 @@ def test_state_and_action_are_lerobots_so101_features_in_its_units(env):
     for _ in range(30):
         observation, *_ = env.step(target)
     assert observation["agent_pos"][:5] == pytest.approx(target[:5], abs=2.0)
+
+
+@pytest.mark.parametrize("conditions", [name for name in SIM_SPECS if not name.endswith("-cube")])
+def test_the_cubes_start_apart_after_every_reset(conditions):
+    """In every set-up, on 30 seeded resets, the two cubes rest more than 6 cm apart (centre to
+    centre) once settled. The distractor was once checked against a cube position MuJoCo had not
+    computed yet, and landed anywhere in the region: in a small one, touching the target."""
+    env = PickCubeEnv(SIM_SPECS[conditions].task, 32, 32)
+    try:
+        for seed in range(30):
+            env.reset(seed=seed)
+            apart = np.linalg.norm(env.cube_pos()[:2] - env.cube_pos("distractor")[:2])
+            assert apart > APART_M - 1e-3, (conditions, seed, apart)
+    finally:
+        env.close()
+    cramped = PickCubeEnv(SimTask(region=(0.2, 0.24, 0.0, 0.04)), 32, 32)  # no two spots 6 cm apart
+    try:
+        with pytest.raises(RuntimeError, match="No 2 cube positions 0.06 m apart"):
+            cramped.reset(seed=0)
+    finally:
+        cramped.close()
 
 
 def test_the_expert_lifts_the_named_cube_on_seeded_episodes(env):

@@ -36,6 +36,7 @@ HOME = np.array([0.0, -40.0, 20.0, 75.0, 0.0, 30.0])
 REACHED_M = 0.02  # grasp point this close to the cube's centre
 LIFTED_M = 0.03  # cube this far above the table, held by both pads
 HOLD_STEPS = 10  # lifted for this many steps in a row ends the episode as a success
+APART_M = 0.06  # the cubes' centres at least this far apart at every reset
 
 
 def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Renderer:
@@ -83,6 +84,8 @@ class PickCubeEnv(gym.Env):
         self.model = build_spec(self.task.look, self.task.distractor).compile()
         self.data = mujoco.MjData(self.model)
         self.joint_ids = [self.model.joint(name).qposadr[0] for name in JOINTS]
+        self._cube_geom = self.model.geom("cube").id
+        self._pad_geoms = np.array([self.model.geom(name).id for name in JAW_PADS])
         self.gripper_range = self.model.jnt_range[self.model.joint("gripper").id].copy()
         self.substeps = round(1.0 / (self.task.fps * self.model.opt.timestep))
         self.renderer: mujoco.Renderer | None = None
@@ -113,28 +116,42 @@ class PickCubeEnv(gym.Env):
         rng = self.np_random
         colours = list(self.task.colours)
         self.colour = colours.pop(int(rng.integers(len(colours))))
-        self._place("cube", self._free_spot(rng, []), self.colour, rng)
+        spots = self._spots(rng, 2 if self.task.distractor else 1)
+        self._place("cube", spots[0], self.colour, rng)
         if self.task.distractor:
             other = colours[int(rng.integers(len(colours)))] if colours else "green"
-            self._place("distractor", self._free_spot(rng, [self.cube_pos()[:2]]), other, rng)
+            self._place("distractor", spots[1], other, rng)
         home = HOME + rng.normal(0.0, 2.0, size=6) * np.array([1, 1, 1, 1, 1, 0])
         self.data.qpos[self.joint_ids] = to_mujoco(home, self.gripper_range)
         self.data.ctrl[:] = self.data.qpos[self.joint_ids]
         mujoco.mj_step(self.model, self.data, nstep=50)  # let the cubes settle on the table
         self.outcome = {"reached": False, "grasped": False, "lifted": False}
         self.steps = self._held = 0
-        return self._observation(), self._info()
+        return self.observe(), self._info()
 
     def step(self, action):
+        reward, success = self.act(action)
+        return self.observe(), reward, success, False, self._info(success)
+
+    def act(self, action) -> tuple[float, bool]:
+        """``step`` without the observation: the servos move to ``action`` for one control period.
+        Returns the graded reward so far (0-3) and whether the cube has now been held up long
+        enough (success, which ends the episode). zk0.closed_loop renders only the steps a
+        chunking policy reads, so it calls this and ``observe`` apart."""
         target = np.clip(np.asarray(action, dtype=np.float64), self.action_space.low, self.action_space.high)
         self.data.ctrl[:] = to_mujoco(target, self.gripper_range)
         mujoco.mj_step(self.model, self.data, nstep=self.substeps)
         self.steps += 1
         lifted = self._grade()
         self._held = self._held + 1 if lifted else 0
-        success = self._held >= HOLD_STEPS
-        reward = float(sum(self.outcome.values()))  # 0-3: the graded outcome so far
-        return self._observation(), reward, success, False, self._info(success)
+        return float(sum(self.outcome.values())), self._held >= HOLD_STEPS
+
+    def observe(self) -> dict:
+        """The observation now: both cameras rendered, and the state."""
+        state = self.joint_pos()
+        if self.task.cube_in_state:
+            state = np.concatenate([state, 100.0 * self.cube_pos()[:2]]).astype(np.float32)
+        return {"pixels": self._images(), "agent_pos": state}
 
     def render(self) -> np.ndarray:
         """The front and wrist cameras side by side (what a rollout video shows)."""
@@ -164,14 +181,20 @@ class PickCubeEnv(gym.Env):
         self.data.qpos[joint.qposadr[0] : joint.qposadr[0] + 7] = [*xy, CUBE_HALF, np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]
         self.model.geom_rgba[self.model.geom(name).id] = COLOURS[colour]
 
-    def _free_spot(self, rng, taken: list[np.ndarray]) -> np.ndarray:
-        """A cube position in the task's region at least 6 cm from the cubes already placed."""
+    def _spots(self, rng, count: int) -> list[np.ndarray]:
+        """``count`` cube positions in the task's region, each more than ``APART_M`` from the others.
+
+        Drawn together and redrawn together: checking a new cube against the body position of one
+        just placed read MuJoCo's kinematics before they were recomputed (the origin, after
+        ``mj_resetData``), so distractors landed anywhere, and a cube placed first in the middle
+        of a small region can leave no spot far enough from it.
+        """
         x0, x1, y0, y1 = self.task.region
-        for _ in range(100):
-            xy = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
-            if all(np.linalg.norm(xy - other) > 0.06 for other in taken):
-                return xy
-        return xy
+        for _ in range(1000):
+            spots = [np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)]) for _ in range(count)]
+            if all(np.linalg.norm(a - b) > APART_M for i, a in enumerate(spots) for b in spots[i + 1 :]):
+                return spots
+        raise RuntimeError(f"No {count} cube positions {APART_M} m apart in the region {self.task.region}.")
 
     def _grade(self) -> bool:
         """Update the episode's graded outcome; whether the cube is lifted in the jaws right now."""
@@ -185,14 +208,12 @@ class PickCubeEnv(gym.Env):
         return lifted
 
     def _pads_touching(self) -> bool:
-        cube = self.model.geom("cube").id
-        pads = {self.model.geom(name).id for name in JAW_PADS}
-        touching = set()
-        for contact in self.data.contact[: self.data.ncon]:
-            pair = {contact.geom1, contact.geom2}
-            if cube in pair:
-                touching |= pair & pads
-        return touching == pads
+        """Both jaw pads in contact with the cube (over the contact arrays at once: a Python loop
+        over the contacts was a tenth of a closed-loop episode's time)."""
+        contacts = self.data.contact
+        pairs = np.stack([contacts.geom1, contacts.geom2], axis=1)
+        with_cube = pairs[(pairs == self._cube_geom).any(axis=1)]
+        return bool(np.isin(self._pad_geoms, with_cube).all())
 
     def _images(self) -> dict[str, np.ndarray]:
         if self.renderer is None:
@@ -202,12 +223,6 @@ class PickCubeEnv(gym.Env):
             self.renderer.update_scene(self.data, camera)
             images[camera] = self.renderer.render().copy()
         return images
-
-    def _observation(self) -> dict:
-        state = self.joint_pos()
-        if self.task.cube_in_state:
-            state = np.concatenate([state, 100.0 * self.cube_pos()[:2]]).astype(np.float32)
-        return {"pixels": self._images(), "agent_pos": state}
 
     def _info(self, success: bool = False) -> dict:
         return {"is_success": success, **self.outcome}

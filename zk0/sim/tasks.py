@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 # Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
-RECORDER_VERSION = 2
+RECORDER_VERSION = 3
 
 
 @dataclass(frozen=True)
