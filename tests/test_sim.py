@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -251,11 +252,13 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
         evaluation = record["server-evaluate"]
         assert {"success-rate", "reached-rate", "grasped-rate", "lifted-rate", "episode-length"} <= set(evaluation)
         assert 0.0 <= evaluation["success-rate"] <= 1.0 and 1 <= evaluation["episode-length"] <= 300
+        assert evaluation["episodes"] == 2 and evaluation["success-low"] <= evaluation["success-rate"]
+        assert evaluation["success-rate"] <= evaluation["success-high"] <= 1.0
         assert (server / "videos" / f"round_{record['round']}.mp4").stat().st_size > 0
     assert (server / "success_rate.png").stat().st_size > 0
     best = runs[0] / "models" / "best"
     assert "success-rate" in json.loads((best / "zk0_round.json").read_text())["server-evaluate"]
-    assert "success rate" in log and "in the simulator" in log
+    assert re.search(r"Round 1/1: .*success \d+% \[\d+, \d+\] of 2 in the simulator", log), log[-3000:]
 
     done = subprocess.run(
         [sys.executable, "-m", "zk0.sim.lerobot_eval", f"--policy.path={best}", "--env.type=zk0_so101",

@@ -161,21 +161,26 @@ def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(
     """The sim setting's result holds both summaries; the success lines come from the success one
     (they once read the action-MSE summary, which has the same keys, and printed its ratio)."""
     from zk0.bench.study import print_success, sim_summary
+    from zk0.rates import rate_metrics
 
-    def rates(success: float) -> dict:
-        return {"success-rate": success, "lifted-rate": success}
+    def rates(successes: int) -> dict:
+        """Ten seeded episodes, the first ``successes`` of them lifted and held."""
+        outcomes = [1] * successes + [0] * (10 - successes)
+        return {**rate_metrics(outcomes), "lifted-rate": successes / 10, "outcomes": outcomes}
 
     success = {
-        "start": {"server": rates(0.0)},
-        "FedAvg": {"client 0": rates(0.1), "client 1": rates(0.3), "server": rates(0.1)},
-        "centralised": {"client 0": rates(0.2), "client 1": rates(0.2), "server": rates(0.4)},
-        "local 0": {"client 0": rates(0.5), "client 1": rates(0.0), "server": rates(0.0)},
-        "local 1": {"client 0": rates(0.2), "client 1": rates(0.6), "server": rates(0.0)},
+        "start": {"server": rates(0)},
+        "FedAvg": {"client 0": rates(1), "client 1": rates(3), "server": rates(1)},
+        "centralised": {"client 0": rates(2), "client 1": rates(2), "server": rates(4)},
+        "local 0": {"client 0": rates(5), "client 1": rates(0), "server": rates(0)},
+        "local 1": {"client 0": rates(2), "client 1": rates(6), "server": rates(0)},
     }
     mse_summary = {"vs-centralised": {"FedAvg": 1.176}, "federation-beats-every-local": {"FedAvg": False}}
     result = {"success": success, "success-summary": sim_summary(success, clients=2), "summary": mse_summary}
     print_success(result)
     out = capsys.readouterr().out
     assert "FedAvg / centralised, success in the server's conditions: 0.25 (target >= 0.9)" in out
+    assert "% [95% interval] of 10 seeded episodes" in out and "10 [2, 40]" in out  # FedAvg's 1 of 10
+    assert "  FedAvg against local 0 in client 0's conditions: -40 points (within the noise, McNemar p = 0.12)" in out
     # client 0's model in client 1's conditions: 0% against FedAvg's 30%; client 1's in client 0's: 20% against 10%
     assert "FedAvg succeeds more than every local-only model in the conditions that client never saw: False" in out

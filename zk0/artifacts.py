@@ -33,6 +33,7 @@ from safetensors.numpy import save_file
 from zk0 import adapters
 from zk0.errors import Zk0Error
 from zk0.policy import PolicyBundle
+from zk0.rates import wilson
 
 CHARTS = {"policy-loss": "policy_loss.png", "action-mse": "action_mse.png"}
 SIM_CHARTS = {"success-rate": "success_rate.png", "lifted-rate": "lifted_rate.png"}  # with closed-loop evaluation
@@ -142,7 +143,10 @@ class History:
             "--",
             2.0,
         )
-        _line(ax, [(r, self.rounds[r].get("server-evaluate", {}).get(metric)) for r in rounds], "server eval", "-", 2.5)
+        server = [(r, self.rounds[r].get("server-evaluate", {})) for r in rounds]
+        _line(ax, [(r, s.get(metric)) for r, s in server], "server eval", "-", 2.5)
+        if metric in SIM_CHARTS:  # a rate over seeded episodes: its 95% interval as a band
+            _band(ax, [(r, s[metric], int(s["episodes"])) for r, s in server if metric in s and "episodes" in s])
         ax.set(xlabel="round", ylabel=metric, title=f"{metric} per round")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
@@ -152,6 +156,13 @@ class History:
         tmp = path.with_suffix(".tmp.png")
         fig.savefig(tmp, dpi=100)
         os.replace(tmp, path)
+
+
+def _band(ax, points: list[tuple[int, float, int]]) -> None:
+    """The server's rate with its Wilson interval shaded: 20 episodes leave about +-20 points."""
+    if points:
+        bounds = [wilson(round(rate * n), n) for _, rate, n in points]
+        ax.fill_between([r for r, _, _ in points], *zip(*bounds, strict=True), alpha=0.2, label="server, 95% interval")
 
 
 def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, width: float) -> None:

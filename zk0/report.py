@@ -18,6 +18,7 @@ from jinja2 import Environment, StrictUndefined
 from markupsafe import Markup
 
 from zk0.artifacts import CHARTS, SIM_CHARTS, clients_trained, write_text
+from zk0.rates import success_text
 
 REPORT_FILE = "report.html"
 ROLLOUT = (
@@ -52,7 +53,7 @@ pre { background: #f6f6f6; padding: 0.8em; overflow-x: auto; }
 <h2>Best model</h2>
 {% if best %}
 <p id="best">Round {{ best.round }}{% if best.round == 0 %} (the starting model: no round beat it){% endif %}:
-{% if "success-rate" in best %}success rate {{ "%.0f"|format(100 * best["success-rate"]) }}% in the simulator, {% endif %}
+{% if "success-rate" in best %}success {{ success_text(best) }} episodes in the simulator (95% interval), {% endif %}
 server action MSE {{ best["action-mse"]|num }}. It is a lerobot policy folder: <code>{{ best_path }}</code>.</p>
 <p>Run it on an SO-101 with lerobot's own tool (SO-100: <code>--robot.type=so100_follower</code>; cameras and
 task as in docs/robot-owners.md):</p>
@@ -113,7 +114,7 @@ ROUND_COLUMNS = [
     ("client-mse", "clients' action MSE"),
     ("policy-loss", "server policy loss"),
     ("action-mse", "server action MSE"),
-    ("success-rate", "success rate"),
+    ("success-rate", "success rate [95% interval] of episodes"),
     ("wall-s", "seconds since start"),
 ]
 
@@ -125,16 +126,18 @@ def _num(value: float | int | None) -> str:
     return str(value) if isinstance(value, int) else f"{value:.4g}"
 
 
-def _cell(value: float | int | None):
-    """A table cell with its figure as printed and, in ``data-value``, as in the JSON."""
+def _cell(value: float | int | tuple[float, str] | None):
+    """A table cell with its figure as printed and, in ``data-value``, as in the JSON (a pair: the
+    figure and how it is printed, such as a success rate with its interval)."""
     if value is None:
         return Markup("<td>-</td>")
-    return Markup('<td data-value="{}">{}</td>').format(repr(value), _num(value))
+    value, text = value if isinstance(value, tuple) else (value, _num(value))
+    return Markup('<td data-value="{}">{}</td>').format(repr(value), text)
 
 
 _ENV = Environment(autoescape=True, undefined=StrictUndefined, trim_blocks=True, lstrip_blocks=True)
 _ENV.filters["num"] = _num
-_TEMPLATE = _ENV.from_string(TEMPLATE, globals={"cell": _cell})
+_TEMPLATE = _ENV.from_string(TEMPLATE, globals={"cell": _cell, "success_text": success_text})
 
 
 def round_row(record: dict) -> dict:
@@ -149,7 +152,7 @@ def round_row(record: dict) -> dict:
         "client-mse": record.get("aggregate-evaluate", {}).get("action-mse"),
         "policy-loss": server.get("policy-loss"),
         "action-mse": server.get("action-mse"),
-        "success-rate": server.get("success-rate"),
+        "success-rate": (server["success-rate"], success_text(server)) if "success-rate" in server else None,
         "wall-s": record.get("wall-s"),
     }
     return {"round": record["round"], "cells": values}

@@ -34,6 +34,7 @@ from zk0.config import RunConfig
 from zk0.hub import can_push, publish
 from zk0.logs import say
 from zk0.policy import PolicyBundle, set_trainable
+from zk0.rates import success_text
 from zk0.registry import DatasetEntry, Registry
 from zk0.report import write_report
 from zk0.stats import stats_from_record
@@ -164,6 +165,7 @@ class RoundArtifacts:
         candidate = {"round": server_round, "action-mse": mse}
         if "success-rate" in evaluation:
             candidate["success-rate"] = float(evaluation["success-rate"])
+            candidate["episodes"] = int(evaluation.get("episodes", 0))
         if self.best is not None and rank(candidate) <= rank(self.best):
             return
         self.best = candidate
@@ -237,7 +239,7 @@ class RoundArtifacts:
         if self.best is None:
             return "the server evaluated no round, so there is no models/best"
         start = "" if self.start_mse is None else f"; round 0: {self.start_mse:.4g}"
-        success = f"success rate {self.best['success-rate']:.0%}, " if "success-rate" in self.best else ""
+        success = f"success {success_text(self.best)}, " if "success-rate" in self.best else ""
         if self.best["round"] == 0:
             return (
                 f"no round beat the starting model ({success}server action MSE {self.best['action-mse']:.4g}), "
@@ -248,7 +250,7 @@ class RoundArtifacts:
     @staticmethod
     def starting_line(evaluation: dict) -> str:
         """Round 0's line: how the model the run starts from does on the server's evaluation."""
-        success = f"success {evaluation['success-rate']:.0%} in the simulator, " if "success-rate" in evaluation else ""
+        success = f"success {success_text(evaluation)} in the simulator, " if "success-rate" in evaluation else ""
         return f"Round 0 (the starting model): {success}server action MSE {evaluation['action-mse']:.4g}"
 
     def checkpoint_bundle(self, client_stats: dict[int, dict]) -> PolicyBundle:
@@ -264,8 +266,8 @@ class RoundArtifacts:
         trained = clients_trained(record)
         refused = sum("error" in c.get("train", {}) for c in record["clients"].values())
         loss = record.get("aggregate-train", {}).get("train-loss")
-        mse = record.get("server-evaluate", {}).get("action-mse")
-        success = record.get("server-evaluate", {}).get("success-rate")
+        server = record.get("server-evaluate", {})
+        mse = server.get("action-mse")
         # The latest round's time: the first also builds every client, and would inflate an average.
         now = time.perf_counter()
         per_round, self.last_end = now - self.last_end, now
@@ -275,7 +277,7 @@ class RoundArtifacts:
             + (f"{refused} refused, " if refused else "")
             + f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
-            + ("" if success is None else f"success {success:.0%} in the simulator, ")
+            + (f"success {success_text(server)} in the simulator, " if "success-rate" in server else "")
             + f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
             + (f", best round {self.best['round']}" if self.best else "")
         )

@@ -134,9 +134,11 @@ def closed_loop_all(
     models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int, say: Callable[[str], None]
 ) -> dict:
     """Every trained model's success in closed loop, in each evaluation set's conditions (the server's
-    span, and each client's own set-up), with that set's processors: {model: {column: rates}}. The
-    untrained start is rolled out in the server's conditions only."""
-    from zk0.closed_loop import ClosedLoop  # MuJoCo: only for the simulated setting
+    span, and each client's own set-up), with that set's processors: {model: {column: rates}}, each
+    with its interval and its per-episode ``outcomes`` (1 = success, in seed order: every model meets
+    the same episodes, so two can be compared pairwise). The untrained start is rolled out in the
+    server's conditions only."""
+    from zk0.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
 
     matrix: dict[str, dict[str, dict]] = {label: {} for label in models}
     for column, (bundle, split, _) in columns.items():
@@ -147,7 +149,8 @@ def closed_loop_all(
                 if label == "start" and column != SERVER:
                     continue
                 set_trainable(bundle, weights)
-                matrix[label][column] = loop(bundle)
+                rolled = loop.rollouts(bundle)
+                matrix[label][column] = {**summary(rolled), "outcomes": [int(e.success) for e in rolled]}
         finally:
             loop.close()
         say(f"every model rolled out in {column}'s conditions")

@@ -66,6 +66,7 @@ from zk0.client import build_client
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.errors import OneSentenceParser, positive
 from zk0.policy import PolicyBundle, snapshot
+from zk0.rates import compare_text
 from zk0.registry import PROJECT_ROOT, load_registry
 from zk0.resume import find_resume_point
 
@@ -262,20 +263,34 @@ def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
 
 
 def print_success(result: dict) -> None:
-    """The closed-loop matrix (success %, lifted % in brackets) and the sim targets."""
+    """The closed-loop matrix (success with its 95% interval), the paired comparisons on each
+    owner's own conditions, and the sim targets."""
     success = result["success"]
     columns = list(success["centralised"])
-    print("closed-loop success (lifted) in each set's conditions, %")
-    print(f"{'':<12}" + "".join(f"{c:>13}" for c in columns))
+    episodes = int(success["centralised"][SERVER]["episodes"])
+    print(f"closed-loop success in each set's conditions, % [95% interval] of {episodes} seeded episodes")
+    print(f"{'':<12}" + "".join(f"{c:>14}" for c in columns))
     for label, row in success.items():
-        cells = [f"{row[c]['success-rate']:.0%} ({row[c]['lifted-rate']:.0%})" if c in row else "-" for c in columns]
-        print(f"{label:<12}" + "".join(f"{cell:>13}" for cell in cells))
+        cells = [rate_cell(row[c]) if c in row else "-" for c in columns]
+        print(f"{label:<12}" + "".join(f"{cell:>14}" for cell in cells))
+    for label in federations(success):
+        for column in columns[:-1]:
+            own = success[label][column]
+            for other in (f"local {column.split()[-1]}", "centralised"):
+                if "outcomes" in own and "outcomes" in success[other][column]:
+                    paired = compare_text(own["outcomes"], success[other][column]["outcomes"])
+                    print(f"  {label} against {other} in {column}'s conditions: {paired}")
     s = result["success-summary"]
     for label, ratio in s["vs-centralised"].items():
         shown = "n/a (centralised 0%)" if ratio is None else f"{ratio:.2f}"
         print(f"{label} / centralised, success in the server's conditions: {shown} (target >= 0.9)")
     for label, beats in s["federation-beats-every-local"].items():
         print(f"{label} succeeds more than every local-only model in the conditions that client never saw: {beats}")
+
+
+def rate_cell(rates: dict) -> str:
+    """``45 [36, 55]``: a success rate and its interval, in percent."""
+    return f"{100 * rates['success-rate']:.0f} [{100 * rates['success-low']:.0f}, {100 * rates['success-high']:.0f}]"
 
 
 def chart(results: dict[str, dict], path: Path) -> None:

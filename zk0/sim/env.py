@@ -102,7 +102,6 @@ class PickCubeEnv(gym.Env):
         self.colour = self.task.colours[0]
         self.outcome = {"reached": False, "grasped": False, "lifted": False}
         self.steps = self._held = 0
-        self.finished: list[dict] = []  # every ended episode's outcome and length (closed-loop evaluation reads it)
 
     @property
     def task_description(self) -> str:
@@ -110,8 +109,6 @@ class PickCubeEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        if self.steps:  # a vector env resets an episode as it ends: keep how it went
-            self.finished.append({**self.outcome, "success": self._held >= HOLD_STEPS, "steps": self.steps})
         mujoco.mj_resetData(self.model, self.data)
         rng = self.np_random
         colours = list(self.task.colours)

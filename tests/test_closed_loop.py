@@ -1,0 +1,82 @@
+"""zk0's closed loop against lerobot's own ``rollout``: the same episodes, action for action, while
+rendering only the frames a chunking policy reads; success rates with their intervals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from lerobot.envs.factory import make_env
+from lerobot.scripts.lerobot_eval import rollout
+
+from zk0.assets import ensure_dataset
+from zk0.closed_loop import ClosedLoop, summary
+from zk0.config import from_run_config
+from zk0.data import open_metadata
+from zk0.policy import build_policy
+from zk0.rates import wilson
+from zk0.registry import load_registry
+
+REGISTRY = "configs/sim-registry.toml"
+CONDITIONS = "sim-so101-eval"
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    """An untrained tiny-128 SmolVLA with the server set's statistics: its actions wander, so two
+    paths that differ anywhere part ways at once."""
+    registry = load_registry(REGISTRY)
+    entry = registry.get(CONDITIONS)
+    ensure_dataset(entry.name)
+    run = from_run_config({"registry": REGISTRY, "server-eval-dataset": CONDITIONS, "model": "tiny-128"})
+    return build_policy(run, open_metadata(entry), entry, registry.model_cameras())
+
+
+@pytest.mark.slow
+def test_the_fast_loop_takes_lerobots_actions_in_every_episode(bundle):
+    """Four seeded episodes in batches of two: lerobot's ``rollout`` over a vector env of two (as
+    ``eval_policy`` runs it, every frame rendered and ``select_action`` every step) and zk0's loop
+    take the same actions at every step and end the same way."""
+    seed, episodes, batch = 11, 4, 2
+    loop = ClosedLoop(CONDITIONS, episodes, seed, 128, 128, batch=batch)
+    env = make_env(loop.config, n_envs=batch)[loop.config.type][0]
+    try:
+        ours = loop.rollouts(bundle)
+        theirs = []
+        torch.manual_seed(seed)  # the loop seeds the policy's noise so
+        for first in range(0, episodes, batch):
+            data = rollout(env, bundle.policy, loop.env_preprocessor, loop.env_postprocessor, bundle.preprocessor,
+                           bundle.postprocessor, seeds=list(range(seed + first, seed + first + batch)))  # fmt: skip
+            for i in range(batch):
+                last = int(torch.argmax(data["done"][i].to(int)))
+                theirs.append((data["action"][i, : last + 1].numpy(), bool(data["success"][i, : last + 1].any())))
+    finally:
+        env.close()
+        loop.close()
+    assert [e.seed for e in ours] == list(range(seed, seed + episodes))
+    for episode, (actions, success) in zip(ours, theirs, strict=True):
+        assert episode.steps == len(actions) and episode.success == success
+        np.testing.assert_array_equal(episode.actions, actions)
+    assert np.ptp(np.concatenate([e.actions for e in ours]), axis=0).max() > 1.0, "the arm moved"
+
+
+def test_a_rollout_reports_its_rate_with_the_interval_and_writes_the_first_video(bundle, tmp_path):
+    """Three short-lived episodes of the untrained policy: the rates carry their episode count and
+    Wilson interval (0/3 is not [0, 0]), the first episode's video is written, and evaluating the
+    same model again gives the same episodes (the noise is seeded, the caller's RNG untouched)."""
+    loop = ClosedLoop(CONDITIONS, 3, 5, 128, 128, batch=3)
+    try:
+        torch.manual_seed(0)
+        before = torch.rand(1)
+        torch.manual_seed(0)
+        metrics = loop(bundle, tmp_path / "videos" / "round_1.mp4")
+        assert torch.rand(1) == before, "the caller's random state is left as it was"
+        again = loop.rollouts(bundle)
+    finally:
+        loop.close()
+    assert metrics["episodes"] == 3 and metrics["success-rate"] == 0.0
+    assert (metrics["success-low"], metrics["success-high"]) == pytest.approx(wilson(0, 3))
+    assert metrics["success-high"] > 0.5 and metrics["episode-length"] == 300
+    assert set(metrics) >= {"reached-rate", "grasped-rate", "lifted-rate", "sim-eval-s"}
+    assert (tmp_path / "videos" / "round_1.mp4").stat().st_size > 1000
+    assert summary(again) | {"sim-eval-s": metrics["sim-eval-s"]} == metrics

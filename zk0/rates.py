@@ -1,0 +1,74 @@
+"""A success rate is a measurement with noise: its interval, and whether two models differ.
+
+Closed-loop success is *k* successes in *n* seeded episodes. With 20 episodes a rate near 50%
+has a standard error of about 11 points, so every rate zk0 prints or writes carries *n* and a
+95% Wilson score interval (which, unlike the normal approximation, stays inside [0, 1] and is
+not [0, 0] at 0/n). Two models rolled out on the same seeded episodes are compared pairwise:
+McNemar's exact test looks only at the episodes where they disagree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
+
+
+def wilson(successes: int, episodes: int, z: float = Z95) -> tuple[float, float]:
+    """The Wilson score interval of ``successes`` out of ``episodes`` (95% by default)."""
+    if episodes <= 0:
+        return 0.0, 1.0
+    p = successes / episodes
+    denominator = 1 + z * z / episodes
+    centre = (p + z * z / (2 * episodes)) / denominator
+    half = z * math.sqrt(p * (1 - p) / episodes + z * z / (4 * episodes * episodes)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def rate_metrics(outcomes: Sequence[bool], prefix: str = "success") -> dict[str, float]:
+    """``{prefix}-rate``, its 95% interval (``-low``, ``-high``) and the episode count."""
+    n, k = len(outcomes), int(sum(bool(o) for o in outcomes))
+    low, high = wilson(k, n)
+    return {f"{prefix}-rate": k / n if n else 0.0, f"{prefix}-low": low, f"{prefix}-high": high, "episodes": float(n)}
+
+
+def rate_text(rate: float, episodes: int) -> str:
+    """``45% [36, 55] of 100``: a rate as people read it, with its interval and episode count."""
+    k = round(rate * episodes)
+    low, high = wilson(k, episodes)
+    return f"{100 * rate:.0f}% [{100 * low:.0f}, {100 * high:.0f}] of {episodes}"
+
+
+def success_text(metrics: dict) -> str:
+    """``45% [36, 55] of 100`` from a closed-loop evaluation's metrics (without the interval for a
+    record from before zk0 kept the episode count)."""
+    episodes = int(metrics.get("episodes", 0))
+    rate = float(metrics["success-rate"])
+    return rate_text(rate, episodes) if episodes else f"{100 * rate:.0f}%"
+
+
+def mcnemar(first: Sequence[bool], second: Sequence[bool]) -> float:
+    """Two-sided exact McNemar p-value for two models' outcomes on the same episodes, in order.
+
+    Only discordant episodes count (one model succeeded, the other not); under "no difference"
+    each is as likely to go either way, so the p-value is a binomial(discordant, 1/2) tail.
+    """
+    if len(first) != len(second):
+        raise ValueError(f"McNemar's test needs the same episodes: got {len(first)} and {len(second)} outcomes.")
+    only_first = sum(1 for a, b in zip(first, second, strict=True) if a and not b)
+    only_second = sum(1 for a, b in zip(first, second, strict=True) if b and not a)
+    discordant = only_first + only_second
+    if discordant == 0:
+        return 1.0
+    tail = sum(math.comb(discordant, i) for i in range(min(only_first, only_second) + 1)) / 2**discordant
+    return min(1.0, 2 * tail)
+
+
+def compare_text(first: Sequence[bool], second: Sequence[bool]) -> str:
+    """How two models on the same episodes differ: the difference in points and whether it is
+    beyond the noise (McNemar, 5%)."""
+    difference = 100 * (sum(map(bool, first)) - sum(map(bool, second))) / max(1, len(first))
+    p = mcnemar(first, second)
+    verdict = "beyond the noise" if p < 0.05 else "within the noise"
+    return f"{difference:+.0f} points ({verdict}, McNemar p = {p:.2g})"
