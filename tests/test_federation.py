@@ -41,7 +41,7 @@ def flower_env(tmp_path_factory):
 # test continues it from round 2 (each `flwr run` costs a minute of fixed start-up on 2 cores).
 THREE_ROUNDS = (
     "num-server-rounds=3 local-steps=3 batch-size=4 checkpoint-interval=1 eval-batches=1"
-    " hf-repo-id='zk0-tests/federated-smolvla'"
+    " hf-repo-id='zk0-tests/federated-smolvla' personal-steps=4"
 )
 
 
@@ -88,6 +88,15 @@ def test_two_clients_three_rounds_write_every_artifact(three_rounds):
         assert "Round 3 train" in client_log and "Round 3 evaluate" in client_log
         assert client_log.count("built SmolVLA") == 1, "policy and dataset are kept across rounds"
         assert json.loads((client_dir / "round_3.json").read_text())["train"]["num-examples"] == 12
+        # its personal model: judged beside the global one, kept on its machine as a policy lerobot loads
+        assert {"personal-action-mse", "personal-policy-loss", "personal-train-loss"} <= set(client["evaluate"])
+        personal = client_dir / "models" / "personal"
+        assert json.loads((personal / "zk0_round.json").read_text())["round"] == 3
+        assert SmolVLAPolicy.from_pretrained(personal).config.chunk_size == 10
+        said = f"client {index} {client['evaluate']['action-mse']:.4g} -> {client['evaluate']['personal-action-mse']:.4g}"
+        assert said in log.split("Personal models after round 3 (held-out action MSE, global -> personal): ")[-1]
+    report = (run / "report.html").read_text()
+    assert 'id="personal"' in report and "--policy.path=clients/client_&lt;i&gt;/models/personal" in report
     assert {"policy-loss", "action-mse"} <= set(last["server-evaluate"])
     assert {"policy-loss", "action-mse"} <= set(last["aggregate-evaluate"])
     models = run / "models"
@@ -178,6 +187,10 @@ def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_e
     for client in ("client_0", "client_1"):
         said = (interrupted / "clients" / client / "client.log").read_text()
         assert "Continuing the resumed run at batch 6 with the optimizer state of round 2." in said
+        # the personal model is fine-tuned again from the same global model, data and seed: the same one
+        personal = [load_file(run / "clients" / client / "models" / "personal" / "model.safetensors")
+                    for run in (straight, interrupted)]  # fmt: skip
+        assert all(torch.equal(personal[0][name], personal[1][name]) for name in personal[0]), client
 
 
 def test_a_run_that_only_gets_worse_hands_back_round_0(flower_env, tmp_path, registry):

@@ -173,6 +173,32 @@ def test_chromium_renders_the_report_with_no_console_error(tmp_path):
     assert console == [], console
 
 
+def test_each_owners_personal_model_is_shown_beside_the_global_one_with_its_command(tmp_path):
+    """With personal-steps the clients' table gives each owner's personal model next to the global
+    one (held-out action MSE, and success in its own conditions with the interval), and says where
+    the owner's personal model is and how lerobot-rollout runs it."""
+    run_dir = tmp_path / "run"
+    history = History(run_dir, {0: "a", 1: "b"}, {})
+    history.add(0, "server-evaluate", {"policy-loss": 1.7, "action-mse": 384.0})
+    own = {"own-success-rate": 0.4, "own-success-low": 0.22, "own-success-high": 0.61, "own-episodes": 20.0}
+    personal = {"personal-own-success-rate": 0.6, "personal-own-success-low": 0.39,
+                "personal-own-success-high": 0.78, "personal-own-episodes": 20.0}  # fmt: skip
+    for index in (0, 1):
+        history.add_client(1, "train", index, {"train-loss": 1.0, "num-examples": 16})
+        history.add_client(1, "evaluate", index, {"action-mse": 235.5, "personal-action-mse": 199.25, **own, **personal})
+    history.add(1, "server-evaluate", {"policy-loss": 1.5, "action-mse": 300.0})
+    history.write_round(1)
+    snapshot = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    page = Tables()
+    page.feed(write_report(run_dir, snapshot, {"num-server-rounds": 1}, None, 1).read_text())
+    header, *rows = page.tables["clients"]
+    cells = dict(zip([c[0] for c in header], rows[0], strict=True))
+    assert cells["last evaluation action MSE"] == ["235.5", "235.5"] and cells["its personal model's action MSE"] == ["199.2", "199.25"]
+    assert cells["global model's success in its own conditions"] == ["40% [22, 61] of 20", "0.4"]
+    assert cells["personal model's success there"] == ["60% [39, 78] of 20", "0.6"]
+    assert any("--policy.path=clients/client_<i>/models/personal" in t for t in page.text)
+
+
 def test_every_round_rewrites_the_report(tmp_path):
     """write_report replaces the page whole (temp file + rename): one report, no temp left."""
     run_dir = tmp_path / "run"

@@ -183,12 +183,14 @@ def save_checkpoint(
     name: str | None = None,
     evaluation: dict | None = None,
     server_state: tuple[str, dict[str, np.ndarray]] | None = None,
+    evaluated_by: str = "server-evaluate",
 ) -> Path:
     """A lerobot pretrained-model directory, written to a temporary name and renamed into place.
 
     A LoRA policy is saved with its adapters merged in (and alone under ``adapter/``), so the
     directory loads like any other. ``name`` (default ``checkpoint_round_<N>``) is its folder under
-    ``models/``; ``zk0_round.json`` says which round it holds and how the server evaluated it.
+    ``models/``; ``zk0_round.json`` says which round it holds and how it was evaluated (under
+    ``evaluated_by``: the server's evaluation, or a client's of its personal model).
     Its processors carry the merged statistics; ``client_stats/<client>.json`` keeps each
     client's own statistics, so a robot owner can run the policy normalised for their robot.
     ``server_state`` (the server optimiser's name and arrays) goes to ``server_optimiser.safetensors``,
@@ -206,7 +208,7 @@ def save_checkpoint(
         bundle.postprocessor.save_pretrained(staging)
         for client, stats in client_stats.items():
             write_json(staging / "client_stats" / f"{client}.json", serialize_dict(stats))
-        write_json(staging / ROUND_FILE, {"round": server_round, "server-evaluate": evaluation or {}})
+        write_json(staging / ROUND_FILE, {"round": server_round, evaluated_by: evaluation or {}})
         if server_state is not None:
             optimiser, arrays = server_state
             save_file(arrays, staging / SERVER_STATE_FILE, metadata={"server-optimiser": optimiser})

@@ -32,6 +32,7 @@ from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_split, train_loader
 from zk0.errors import Zk0Error
 from zk0.logs import add_file_sink, prints_to_log, setup_logging
+from zk0.personal import Personaliser, build_personaliser
 from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, set_trainable, trainable_tensors
 from zk0.preflight import check_dataset, model_inputs
 from zk0.registry import DatasetEntry, Registry, load_registry
@@ -57,6 +58,7 @@ class ClientSession:
     eval_batches: DataLoader
     fingerprint: str
     party: str
+    personal: Personaliser | None = None  # with personal-steps: built at the first evaluation
 
 
 def client_index(registry: Registry, node_config: dict) -> int:
@@ -155,7 +157,9 @@ def model_shapes(config: ConfigRecord) -> dict[str, tuple[int, ...]]:
 def release_sessions(keep_run: int | None = None) -> None:
     """Drop the sessions of other runs (their policy, optimizer and GPU memory)."""
     for stale in [k for k in _SESSIONS if k[0] != keep_run]:
-        del _SESSIONS[stale]
+        session = _SESSIONS.pop(stale)
+        if session.personal:
+            session.personal.close()
     if torch.cuda.is_available():
         torch.cuda.empty_cache()
 
@@ -212,7 +216,7 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     config = content["config"]
     server_round = int(config["server-round"])
     run = session.run
-    evaluation = _evaluate_before_training(session, content) if int(config.get(EVALUATE_ROUND, 0)) else None
+    evaluation = _evaluate_before_training(session, content, context) if int(config.get(EVALUATE_ROUND, 0)) else None
     metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), (server_round - 1) * run.local_steps)
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
     if keep_optimizer:
@@ -240,23 +244,29 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     return reply
 
 
-def _evaluate_before_training(session: ClientSession, content: RecordDict) -> dict:
+def _evaluate_before_training(session: ClientSession, content: RecordDict, context: Context) -> dict:
     """The received model's evaluation, or why it failed: a failed evaluation (unreadable held-out
     frames, say) is reported to the server and does not cost the round's training."""
     try:
-        return dict(_evaluate(session, content)["metrics"])
+        return dict(_evaluate(session, content, context)["metrics"])
     except Zk0Error as err:
         reason = f"{client_label(session.index, session.split.entry.name)}: {err}"
         logger.error("zk0: {}", reason)
         return {"error": reason}
 
 
-def _evaluate(session: ClientSession, content: RecordDict) -> RecordDict:
+def _evaluate(session: ClientSession, content: RecordDict, context: Context) -> RecordDict:
+    """The received global model on this client's held-out episodes; with ``personal-steps``, its
+    personal model beside it (fine-tuned from it, kept on this machine: zk0.personal)."""
     run = session.run
     metrics = evaluate(
         session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed, run.max_skip_fraction
     )
     evaluated = int(content["config"].get(EVALUATE_ROUND, content["config"]["server-round"]))
+    if run.personal_steps:
+        if session.personal is None:
+            session.personal = build_personaliser(run, session.bundle, session.split, session.eval_batches)
+        metrics |= session.personal(evaluated, state_folder(session, context, content["config"]).parent, metrics)
     logger.info("Round {} evaluate on {}: {}", evaluated, session.split.entry.name, metrics)
     return RecordDict({"metrics": MetricRecord(metrics), CLIENT: identity(session)})
 
@@ -290,7 +300,11 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
         _check_server(session, content["config"])
         set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
         restore = _catch_up(session, context, content["config"]) if kind == "train" else 0.0
-        reply = _train(session, content, context, keep_optimizer) if kind == "train" else _evaluate(session, content)
+        reply = (
+            _train(session, content, context, keep_optimizer)
+            if kind == "train"
+            else _evaluate(session, content, context)
+        )
     timings = dict(zip(TIMINGS, (startup, build, restore, time.perf_counter() - started), strict=True))
     next(iter(reply.metric_records.values())).update(timings)
     return reply

@@ -81,6 +81,8 @@ class RunConfig:
     lora_full_modules: str = LORA_FULL_MODULES  # comma-separated, trained in full next to the adapters; "" = none
     lora_average: str = "b"  # b: A frozen at its seeded start, B trained and averaged; ab: both trained and averaged
     sim_eval_episodes: int = 0  # closed-loop episodes in the simulator per evaluated round (zk0.sim); 0 = off
+    personal_steps: int = 0  # each client fine-tunes the global model this many steps when it evaluates (zk0.personal)
+    personal_mu: float = 0.0  # the personal model's proximal pull toward the global one while it fine-tunes
 
     @property
     def total_steps(self) -> int:
@@ -128,6 +130,8 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "lora_rank": (1, None, False),
     "lora_alpha": (0, None, True),
     "sim_eval_episodes": (0, None, False),
+    "personal_steps": (0, None, False),
+    "personal_mu": (0, None, False),
 }
 
 

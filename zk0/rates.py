@@ -40,11 +40,12 @@ def rate_text(rate: float, episodes: int) -> str:
     return f"{100 * rate:.0f}% [{100 * low:.0f}, {100 * high:.0f}] of {episodes}"
 
 
-def success_text(metrics: dict) -> str:
-    """``45% [36, 55] of 100`` from a closed-loop evaluation's metrics (without the interval for a
-    record from before zk0 kept the episode count)."""
-    episodes = int(metrics.get("episodes", 0))
-    rate = float(metrics["success-rate"])
+def success_text(metrics: dict, prefix: str = "") -> str:
+    """``45% [36, 55] of 100`` from a closed-loop evaluation's metrics (``prefix``: a client's
+    ``own-`` or ``personal-own-`` ones), without the interval for a record from before zk0 kept the
+    episode count."""
+    episodes = int(metrics.get(f"{prefix}episodes", 0))
+    rate = float(metrics[f"{prefix}success-rate"])
     return rate_text(rate, episodes) if episodes else f"{100 * rate:.0f}%"
 
 

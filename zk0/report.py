@@ -86,12 +86,23 @@ task as in docs/robot-owners.md):</p>
 <h2>Clients</h2>
 <table id="clients">
 <tr><th>client</th><th class="text">dataset</th><th>rounds trained</th><th>samples trained</th>
-<th>last train loss</th><th>last evaluation action MSE</th><th>refusals</th></tr>
+<th>last train loss</th><th>last evaluation action MSE</th>
+{% if personal %}<th>its personal model's action MSE</th><th>global model's success in its own conditions</th>
+<th>personal model's success there</th>{% endif %}<th>refusals</th></tr>
 {% for client in clients %}
 <tr><td>{{ client.index }}</td><td class="text">{{ client.dataset }}</td><td>{{ client.rounds }}</td>
-{{ cell(client.samples) }}{{ cell(client.loss) }}{{ cell(client.mse) }}<td>{{ client.refusals|length }}</td></tr>
+{{ cell(client.samples) }}{{ cell(client.loss) }}{{ cell(client.mse) }}
+{% if personal %}{{ cell(client.personal_mse) }}{{ cell(client.own_success) }}{{ cell(client.personal_success) }}{% endif %}
+<td>{{ client.refusals|length }}</td></tr>
 {% endfor %}
 </table>
+{% if personal %}
+<p id="personal">Each owner's personal model (the global model fine-tuned on their own data, evaluated on the
+same held-out episodes) is on their own machine, never sent: in the run's folder there, under their output
+folder (in simulation, this folder; on a SuperNode, its <code>--output-dir</code>). Client <i>i</i> runs theirs with
+<code>--policy.path=clients/client_&lt;i&gt;/models/personal</code> in the command above, from that run folder:</p>
+<pre>{{ personal_rollout }}</pre>
+{% endif %}
 {% for client in clients %}{% for refusal in client.refusals %}
 <p class="refusal">Round {{ refusal.round }}, client {{ client.index }} ({{ client.dataset }}), {{ refusal.phase }}: {{ refusal.reason }}</p>
 {% endfor %}{% endfor %}
@@ -182,10 +193,20 @@ def client_rows(history: dict) -> list[dict]:
                 "samples": sum(int(t.get("num-examples", 0)) for t in ok) if ok else None,
                 "loss": ok[-1].get("train-loss") if ok else None,
                 "mse": scored[-1].get("action-mse") if scored else None,
+                "personal_mse": scored[-1].get("personal-action-mse") if scored else None,
+                "own_success": _own_success(scored[-1], "own-") if scored else None,
+                "personal_success": _own_success(scored[-1], "personal-own-") if scored else None,
                 "refusals": refusals,
             }
         )
     return rows
+
+
+def _own_success(evaluation: dict, prefix: str) -> tuple[float, str] | None:
+    """A client's closed-loop success in its own conditions (``own-*`` or ``personal-own-*``), with its interval."""
+    if f"{prefix}success-rate" not in evaluation:
+        return None
+    return evaluation[f"{prefix}success-rate"], success_text(evaluation, prefix)
 
 
 def _charts(server_dir: Path) -> list[dict]:
@@ -216,6 +237,7 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
     status = f"Round {last} of {num_rounds}{ending}"
     best_path = run_dir / "models" / "best"
     columns = [{"key": k, "title": t} for k, t in ROUND_COLUMNS if any(r["cells"][k] is not None for r in rounds)]
+    clients = client_rows(history)
     return _TEMPLATE.render(
         name=run_dir.name,
         status=status,
@@ -226,7 +248,9 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
         rounds=rounds,
         charts=_charts(run_dir / "server"),
         videos=_videos(run_dir, best, last),
-        clients=client_rows(history),
+        clients=clients,
+        personal=any(c["personal_mse"] is not None for c in clients),
+        personal_rollout=ROLLOUT.replace("POLICY", "clients/client_<i>/models/personal"),
         config=sorted(config.items()),
     )
 

@@ -89,6 +89,27 @@ class RoundArtifacts:
             self.history.add_client(server_round, phase, index, dict(content["metrics"]))
             if "stats" in content:
                 self.client_stats[index] = stats_from_record(content["stats"])
+        if phase == "evaluate" and any("personal-action-mse" in content["metrics"] for content in replies):
+            say(self.personal_line(server_round))
+
+    def personal_line(self, server_round: int) -> str:
+        """``Personal models after round 2 (...): client 0 235 -> 199, ...``: each owner's global and
+        personal model on its own held-out episodes, and in simulated conditions in its own set-up."""
+        clients = self.history.round(server_round)["clients"]
+        scored = {
+            i: c["evaluate"] for i, c in sorted(clients.items()) if "personal-action-mse" in c.get("evaluate", {})
+        }
+        mse = ", ".join(
+            f"client {i} {e['action-mse']:.4g} -> {e['personal-action-mse']:.4g}" for i, e in scored.items()
+        )
+        line = f"Personal models after round {server_round} (held-out action MSE, global -> personal): {mse}"
+        own = {i: e for i, e in scored.items() if "own-success-rate" in e}
+        if own:
+            rates = ", ".join(
+                f"client {i} {success_text(e, 'own-')} -> {success_text(e, 'personal-own-')}" for i, e in own.items()
+            )
+            line += f"; success in the owner's own conditions: {rates}"
+        return line
 
     def round_ended(
         self,
@@ -116,7 +137,9 @@ class RoundArtifacts:
         self.history.add(server_round, "best", self.best)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
-        write_report(self.history.run_dir, self.history.snapshot(), self.run.to_flat(), self.best, self.run.num_server_rounds)
+        write_report(
+            self.history.run_dir, self.history.snapshot(), self.run.to_flat(), self.best, self.run.num_server_rounds
+        )
         if self.run.checkpoints_in(server_round):
             stopping.check(server_round)
             path = self.checkpoint(server_round, arrays, evaluation, server_state)

@@ -74,6 +74,11 @@ class FedProx:
         self.mu = mu
         self.anchor = {name: p.detach().clone() for name, p in self.params.items()}
 
+    def release(self) -> None:
+        """Stop pulling: a client's personal fine-tuning (zk0.personal) trains the same parameters
+        with hooks of its own, and each trainer's pull must act only during its own steps."""
+        self.mu, self.anchor = 0.0, {}
+
     def loss(self) -> float:
         """``(mu/2)·||w - w_global||²`` at the current weights."""
         if not self.anchor:
@@ -237,9 +242,11 @@ class LocalTrainer:
             samples += len(batch["action"])
             done += 1
         elapsed = time.perf_counter() - started
+        proximal = self.fedprox.loss()
+        self.fedprox.release()
         return {
             "train-loss": tracker.loss.avg,
-            "proximal-loss": self.fedprox.loss(),
+            "proximal-loss": proximal,
             "grad-norm": tracker.grad_norm.avg,
             "lr": self.optimizer.param_groups[0]["lr"],
             "num-examples": samples,

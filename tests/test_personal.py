@@ -1,0 +1,67 @@
+"""An owner's personal model: fine-tuned from the global model on the owner's own data when the
+client evaluates, judged beside it, kept as a lerobot policy folder on the owner's machine, and
+never sent: the client's update is the same, byte for byte, with and without it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from flwr.app import ConfigRecord, Context, RecordDict
+from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+from zk0 import app_fingerprint, client
+from zk0.config import from_run_config
+from zk0.policy import backbone_fingerprint, trainable_tensors
+from zk0.wire import EVALUATE_ROUND, decode, encode
+
+pytestmark = pytest.mark.usefixtures("flower_task", "isolated_logging")
+
+RUN = {"batch-size": 4, "local-steps": 3, "lr": 8e-3, "num-server-rounds": 2, "eval-batches": 2}
+
+
+def messages(registry, personal_steps: int):
+    """The global model (the starting one) as a round-1 train message and a round-2 train message
+    that first evaluates what it receives, as the server sends them to client 0."""
+    run_config = {**RUN, "personal-steps": personal_steps}
+    start = client.build_client(from_run_config(run_config), registry.clients[0], registry.model_cameras())
+    arrays = encode(trainable_tensors(start.bundle), start.run.wire_dtype)
+    config = {"proximal-mu": 0.0, "run-name": "r", "app-fingerprint": app_fingerprint(),
+              "backbone-fingerprint": backbone_fingerprint(start.bundle)}  # fmt: skip
+    rounds = [RecordDict({"arrays": arrays, "config": ConfigRecord({**config, "server-round": 1})})]
+    rounds.append(RecordDict({"arrays": arrays, "config": ConfigRecord({**config, "server-round": 2, EVALUATE_ROUND: 1})}))
+    return run_config, rounds
+
+
+def federate(registry, tmp_path, personal_steps: int, run_id: int) -> list[RecordDict]:
+    run_config, rounds = messages(registry, personal_steps)
+    context = Context(run_id=run_id, node_id=3, node_config={"partition-id": 0, "output-dir": str(tmp_path)},
+                      state=RecordDict(), run_config=run_config)  # fmt: skip
+    return [client.handle("train", content, context) for content in rounds]
+
+
+def test_the_personal_model_beats_the_global_one_on_its_owners_episodes_and_stays_there(registry, tmp_path):
+    with_personal = federate(registry, tmp_path / "owner", personal_steps=60, run_id=71)
+    without = federate(registry, tmp_path / "plain", personal_steps=0, run_id=72)
+    client.release_sessions()
+
+    # nothing personal travels: the updates are the same bytes, and the evaluation is metrics only
+    for mine, plain in zip(with_personal, without, strict=True):
+        assert set(mine) == set(plain)
+        ours, theirs = mine["arrays"], plain["arrays"]
+        assert all(np.array_equal(ours[k].numpy(), theirs[k].numpy()) for k in theirs)
+    evaluation = dict(with_personal[1]["evaluation"])
+    assert dict(without[1]["evaluation"]).keys() == {k for k in evaluation if not k.startswith("personal-")}
+    assert evaluation["personal-action-mse"] < evaluation["action-mse"], "60 steps on its own data help its own episodes"
+    assert {"personal-policy-loss", "personal-train-loss", "personal-s"} <= set(evaluation)
+
+    # kept on the owner's machine, under its output folder, as a policy lerobot loads
+    folder = tmp_path / "owner" / "r" / "clients" / "client_0" / "models" / "personal"
+    kept = json.loads((folder / "zk0_round.json").read_text())
+    assert kept["round"] == 1 and kept["evaluate"]["personal-action-mse"] == evaluation["personal-action-mse"]
+    loaded = SmolVLAPolicy.from_pretrained(folder)
+    start = decode(with_personal[0]["arrays"], "bfloat16")  # what round 1 trained; the personal one differs from it
+    params = dict(loaded.named_parameters())
+    assert any(not np.allclose(params[name].detach().numpy(), value.numpy()) for name, value in start.items())
+    assert not (tmp_path / "plain" / "r" / "clients" / "client_0" / "models").exists()
