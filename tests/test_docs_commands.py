@@ -199,3 +199,26 @@ def test_the_docs_show_the_deployment_commands():
         "lerobot-rollout",
     ):
         assert expected in text, expected
+
+
+def heading_anchors(path: Path) -> set[str]:
+    """GitHub's anchors for a page's headings: lower case, punctuation dropped, spaces to hyphens."""
+    headings = re.findall(r"^#+ (.+)$", path.read_text(), re.MULTILINE)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in headings}
+
+
+def test_every_link_between_the_docs_lands_on_a_file_and_heading_that_exist():
+    broken = []
+    for doc in DOCS:
+        for target, anchor in re.findall(r"\]\((?!https?:|mailto:)([^)#\s]*)(?:#([^)\s]+))?\)", doc.read_text()):
+            path = (doc.parent / target).resolve() if target else doc
+            if not path.exists() or (anchor and path.suffix == ".md" and anchor not in heading_anchors(path)):
+                broken.append(f"{doc.relative_to(PROJECT_ROOT)} -> {target}#{anchor}")
+    assert not broken, broken
+
+
+def test_the_results_page_stays_a_results_page_and_links_every_investigation():
+    learning = PROJECT_ROOT / "docs" / "learning.md"
+    assert len(learning.read_text().splitlines()) <= 250, "results first: investigations go to docs/notes/"
+    linked = set(re.findall(r"\]\(notes/([^)]+\.md)\)", learning.read_text()))
+    assert linked == {p.name for p in (PROJECT_ROOT / "docs" / "notes").glob("*.md")}

@@ -18,7 +18,7 @@ from zk0.wire import EVALUATE_ROUND, decode, encode
 
 pytestmark = pytest.mark.usefixtures("flower_task", "isolated_logging")
 
-RUN = {"batch-size": 4, "local-steps": 3, "lr": 8e-3, "num-server-rounds": 2, "eval-batches": 2}
+RUN = {"batch-size": 4, "local-steps": 3, "lr": 8e-3, "personal-lr": 8e-3, "num-server-rounds": 2, "eval-batches": 2}
 
 
 def messages(registry, personal_steps: int):

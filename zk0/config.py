@@ -83,6 +83,13 @@ class RunConfig:
     sim_eval_episodes: int = 0  # closed-loop episodes in the simulator per evaluated round (zk0.sim); 0 = off
     personal_steps: int = 0  # each client fine-tunes the global model this many steps when it evaluates (zk0.personal)
     personal_mu: float = 0.0  # the personal model's proximal pull toward the global one while it fine-tunes
+    personal_lr: float = 0.0  # that fine-tuning's peak learning rate; 0 = a quarter of lr
+
+    @property
+    def personal_peak_lr(self) -> float:
+        """The personal fine-tune's peak rate: ``personal-lr``, else a quarter of the federation's
+        (at the federation's own rate the fine-tune overshot a converged model: docs/learning.md)."""
+        return self.personal_lr or self.lr / 4
 
     @property
     def total_steps(self) -> int:
@@ -132,6 +139,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "sim_eval_episodes": (0, None, False),
     "personal_steps": (0, None, False),
     "personal_mu": (0, None, False),
+    "personal_lr": (0, 1, False),
 }
 
 

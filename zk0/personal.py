@@ -80,8 +80,11 @@ def build_personaliser(
     run: RunConfig, bundle: PolicyBundle, split: DatasetSplit, eval_batches: DataLoader
 ) -> Personaliser:
     """The owner's fine-tuning for this run: ``personal-steps`` steps on the client's own training
-    episodes, on a schedule of their own (warm-up and decay over those steps), one process."""
-    personal_run = replace(run, local_steps=run.personal_steps, num_server_rounds=1, num_workers=0)
+    episodes at ``personal-lr`` (default a quarter of ``lr``), on a schedule of their own (warm-up
+    and decay over those steps), in the client's process."""
+    personal_run = replace(
+        run, lr=run.personal_peak_lr, local_steps=run.personal_steps, num_server_rounds=1, num_workers=0
+    )
     trainer = LocalTrainer(bundle, split, train_loader(split.train, personal_run, bundle.device), personal_run)
     closed_loop = None
     if run.sim_eval_episodes and split.entry.name in SIM_SPECS:

@@ -14,7 +14,7 @@ import time
 import zlib
 from collections.abc import Iterator
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import psutil
 import torch
@@ -143,8 +143,9 @@ class LocalTrainer:
         train_cfg = TrainPipelineConfig(
             dataset=None,  # type: ignore[arg-type]  # only the optimizer presets and steps are read
             policy=cfg,
-            optimizer=cfg.get_optimizer_preset(),
-            scheduler=cfg.get_scheduler_preset(),
+            # SmolVLA's presets at this trainer's own peak rate (a personal fine-tune's is lower)
+            optimizer=replace(cfg.get_optimizer_preset(), lr=self.run.lr),
+            scheduler=replace(cfg.get_scheduler_preset(), peak_lr=self.run.lr),
             steps=self.run.total_steps,
         )
         self.optimizer, self.scheduler = make_optimizer_and_scheduler(train_cfg, self.bundle.policy)
