@@ -93,12 +93,14 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     from zk0.bench.study import main
 
     argv = ["--settings", "noniid", "--clients", "2", "--rounds", "2", "--local-steps", "2"]
-    argv += ["--federations", "FedProx"]  # one: each is a whole `flwr run` (server optimisers: test_federation)
+    argv += ["--federations", "FedProx", "--personal-steps", "2"]  # one: each is a whole `flwr run`
     assert main([*argv, "--output-dir", str(tmp_path), "--batch-size", "4"]) == 0
     out = capsys.readouterr().out
     result = json.loads((tmp_path / "study.json").read_text())["results"]["noniid"]
     matrix = result["matrix"]
-    assert list(matrix) == ["start", "FedProx", "centralised", "local 0", "local 1", "equal steps"]
+    assert list(matrix) == ["start", "FedProx", "centralised", "local 0", "local 1", "personal 0", "personal 1",
+                            "equal steps"]  # fmt: skip
+    assert matrix["personal 0"] != matrix["FedProx"], "each owner's personal model is the federation's fine-tuned"
     for row in matrix.values():
         assert list(row) == ["client 0", "client 1", "server"]
         assert all(math.isfinite(v[k]) and v[k] > 0 for v in row.values() for k in ("action-mse", "policy-loss"))
@@ -118,6 +120,7 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     assert "better than every local-only model on the other clients' held-out episodes" in out
     said = [line.split(": ", 1)[1].rsplit(" (", 1)[0] for line in out.splitlines() if line.startswith("  noniid: ")]
     assert said == ["federation FedProx trained", "centralised trained", "local-only models trained",
+                    "personal models (FedProx fine-tuned) and local-only models fine-tuned alike",
                     "equal steps trained", "every model evaluated on every held-out set"]  # progress as it goes
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -129,7 +132,7 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     with that set's processors; the start in the server's only; the targets computed from it."""
     from zk0.bench.study import closed_loop_all, evaluation_sets, sim_summary, study_run
 
-    args = argparse.Namespace(rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128")
+    args = argparse.Namespace(rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128", personal_steps=0)
     registry_path = "configs/sim-registry.toml"
     registry = load_registry(registry_path)
     run = study_run(args, registry_path)
@@ -174,6 +177,8 @@ def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(
         "centralised": {"client 0": rates(2), "client 1": rates(2), "server": rates(4)},
         "local 0": {"client 0": rates(5), "client 1": rates(0), "server": rates(0)},
         "local 1": {"client 0": rates(2), "client 1": rates(6), "server": rates(0)},
+        "personal 0": {"client 0": rates(9), "client 1": rates(1), "server": rates(1)},
+        "personal 1": {"client 0": rates(1), "client 1": rates(7), "server": rates(1)},
     }
     mse_summary = {"vs-centralised": {"FedAvg": 1.176}, "federation-beats-every-local": {"FedAvg": False}}
     result = {"success": success, "success-summary": sim_summary(success, clients=2), "summary": mse_summary}
@@ -182,5 +187,8 @@ def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(
     assert "FedAvg / centralised, success in the server's conditions: 0.25 (target >= 0.9)" in out
     assert "% [95% interval] of 10 seeded episodes" in out and "10 [2, 40]" in out  # FedAvg's 1 of 10
     assert "  FedAvg against local 0 in client 0's conditions: -40 points (within the noise, McNemar p = 0.12)" in out
+    assert "  personal 0 against local 0 in client 0's conditions: +40 points (within the noise, McNemar p = 0.12)" in out
+    # (90% - 50% + 70% - 60%) / 2 = +25 points; personal 80% on average in their own against centralised 20%
+    assert "in the owner's own conditions: +25 points on average (target >= +20); / centralised there: 4.00" in out
     # client 0's model in client 1's conditions: 0% against FedAvg's 30%; client 1's in client 0's: 20% against 10%
     assert "FedAvg succeeds more than every local-only model in the conditions that client never saw: False" in out

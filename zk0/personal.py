@@ -76,16 +76,21 @@ class Personaliser:
             self.closed_loop.close()
 
 
-def build_personaliser(
-    run: RunConfig, bundle: PolicyBundle, split: DatasetSplit, eval_batches: DataLoader
-) -> Personaliser:
-    """The owner's fine-tuning for this run: ``personal-steps`` steps on the client's own training
-    episodes at ``personal-lr`` (default a quarter of ``lr``), on a schedule of their own (warm-up
-    and decay over those steps), in the client's process."""
+def fine_tuner(run: RunConfig, bundle: PolicyBundle, split: DatasetSplit) -> LocalTrainer:
+    """The owner's fine-tuning: ``personal-steps`` steps on the client's own training episodes at
+    ``personal-lr`` (default a quarter of ``lr``), on a schedule of their own (warm-up and decay
+    over those steps), with a loader of its own in the client's process."""
     personal_run = replace(
         run, lr=run.personal_peak_lr, local_steps=run.personal_steps, num_server_rounds=1, num_workers=0
     )
-    trainer = LocalTrainer(bundle, split, train_loader(split.train, personal_run, bundle.device), personal_run)
+    return LocalTrainer(bundle, split, train_loader(split.train, personal_run, bundle.device), personal_run)
+
+
+def build_personaliser(
+    run: RunConfig, bundle: PolicyBundle, split: DatasetSplit, eval_batches: DataLoader
+) -> Personaliser:
+    """A client's personal model for this run: its fine-tuner, and its closed loop when simulated."""
+    trainer = fine_tuner(run, bundle, split)
     closed_loop = None
     if run.sim_eval_episodes and split.entry.name in SIM_SPECS:
         height, width, _ = split.meta.features["observation.images.front"]["shape"]

@@ -23,6 +23,7 @@ from zk0.assets import ensure_dataset
 from zk0.client import ClientSession
 from zk0.config import RunConfig
 from zk0.data import eval_loader, open_evaluation, open_metadata
+from zk0.personal import fine_tuner
 from zk0.policy import build_policy, set_trainable, snapshot
 from zk0.registry import Registry
 from zk0.sim.tasks import SIM_SPECS
@@ -104,6 +105,14 @@ def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weight
     """One client alone, for the steps it takes in the federation."""
     set_trainable(session.bundle, start)
     session.trainer.fit(run.total_steps, mu=0.0, global_step=0)
+    return snapshot(session.bundle)
+
+
+def fine_tuned(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
+    """``start`` fine-tuned on the client's own training episodes as a federation's client
+    fine-tunes its personal model (zk0.personal: ``personal-steps`` at ``personal-lr``)."""
+    set_trainable(session.bundle, start)
+    fine_tuner(run, session.bundle, session.split).fit(run.personal_steps, run.personal_mu, global_step=0)
     return snapshot(session.bundle)
 
 

@@ -16,6 +16,12 @@ On the same synthetic clients, model, batch size and number of samples, with one
   samples again, so it splits "fewer sequential steps" from "federating";
 - **local-only**: each client alone, for the steps it takes in the federation;
 
+- with ``--personal-steps N``, **personal** *i*: the first federation's model fine-tuned N steps on
+  client *i*'s own data as a federation's client fine-tunes its personal model (zk0.personal, a
+  quarter of ``--lr``), and each local-only model fine-tuned alike, so the two have seen as many
+  samples; the paired comparisons in each owner's own conditions then answer "what does joining
+  give my robot";
+
 then evaluates every model, and the common starting model, on every client's held-out
 episodes and on the server's evaluation set (action MSE in joint units, and the policy loss),
 exactly as the federation's clients and server evaluate. It does so in two settings:
@@ -32,7 +38,7 @@ success to be compared with it.
 
     python -m zk0.bench study [--settings mild noniid sim sim-cube] [--rounds 8] [--local-steps 20]
         [--clients 4] [--model tiny] [--lr 8e-3] [--federation-lr LR] [--federations FedProx FedAvg Nesterov ...]
-        [--server-lr LR] [--server-momentum M] [--demos 30] [--sim-episodes 10]
+        [--server-lr LR] [--server-momentum M] [--demos 30] [--sim-episodes 10] [--personal-steps N]
         [--output-dir outputs/bench-study]
 """
 
@@ -59,6 +65,7 @@ from zk0.bench.models import (
     evaluate_all,
     evaluation_sets,
     federate,
+    fine_tuned,
     generate,
     local_only,
 )  # fmt: skip
@@ -102,6 +109,7 @@ def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
         registry=registry,
         model=args.model,
         min_train_clients=args.clients,
+        personal_steps=args.personal_steps,
     )
 
 
@@ -164,7 +172,16 @@ def sim_summary(success: dict[str, dict[str, dict]], clients: int) -> dict:
     rate = {label: {c: v["success-rate"] for c, v in row.items()} for label, row in success.items()}
     central = rate["centralised"][SERVER]
     ratios = {label: rate[label][SERVER] / central if central else None for label in federations(rate)}
-    return {"vs-centralised": ratios, **against_local_only(rate, clients, lambda fed, local: fed > local)}
+    summary = {"vs-centralised": ratios, **against_local_only(rate, clients, lambda fed, local: fed > local)}
+    if "personal 0" in rate:  # what an owner gets on its own set-up: its personal model against alone
+        own = {c: (rate[f"personal {c}"][f"client {c}"], rate[f"local {c}"][f"client {c}"],
+                   rate["centralised"][f"client {c}"]) for c in range(clients)}  # fmt: skip
+        summary["personal-minus-alone-points"] = statistics.mean(100 * (p - a) for p, a, _ in own.values())
+        centralised_own = statistics.mean(c for _, _, c in own.values())
+        summary["personal-vs-centralised-own"] = (
+            statistics.mean(p for p, _, _ in own.values()) / centralised_own if centralised_own else None
+        )
+    return summary
 
 
 def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
@@ -201,6 +218,12 @@ def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
     for session in sessions:
         models[f"local {session.index}"] = local_only(session, run, start)
     say("local-only models trained")
+    if args.personal_steps:  # each owner's personal model, and its own model given the same extra steps
+        federated = models[args.federations[0]]
+        for session in sessions:
+            models[f"personal {session.index}"] = fine_tuned(session, run, federated)
+            models[f"local {session.index}"] = fine_tuned(session, run, models[f"local {session.index}"])
+        say(f"personal models ({args.federations[0]} fine-tuned) and local-only models fine-tuned alike")
     models[EQUAL_STEPS], _ = centralised(sessions, run, start, cameras, wide=True)  # last: the others' data order stays
     say("equal steps trained")
     matrix = evaluate_all(models, columns, run)
@@ -273,19 +296,24 @@ def print_success(result: dict) -> None:
     for label, row in success.items():
         cells = [rate_cell(row[c]) if c in row else "-" for c in columns]
         print(f"{label:<12}" + "".join(f"{cell:>14}" for cell in cells))
-    for label in federations(success):
-        for column in columns[:-1]:
-            own = success[label][column]
-            for other in (f"local {column.split()[-1]}", "centralised"):
-                if "outcomes" in own and "outcomes" in success[other][column]:
-                    paired = compare_text(own["outcomes"], success[other][column]["outcomes"])
-                    print(f"  {label} against {other} in {column}'s conditions: {paired}")
+    for column in columns[:-1]:
+        owner = column.split()[-1]
+        models = [*federations(success), f"personal {owner}"]
+        for label, other in [(m, o) for m in models for o in (f"local {owner}", "centralised") if m in success]:
+            if "outcomes" in success[label][column] and "outcomes" in success[other][column]:
+                paired = compare_text(success[label][column]["outcomes"], success[other][column]["outcomes"])
+                print(f"  {label} against {other} in {column}'s conditions: {paired}")
     s = result["success-summary"]
     for label, ratio in s["vs-centralised"].items():
         shown = "n/a (centralised 0%)" if ratio is None else f"{ratio:.2f}"
         print(f"{label} / centralised, success in the server's conditions: {shown} (target >= 0.9)")
     for label, beats in s["federation-beats-every-local"].items():
         print(f"{label} succeeds more than every local-only model in the conditions that client never saw: {beats}")
+    if "personal-minus-alone-points" in s:
+        ratio = s["personal-vs-centralised-own"]
+        print(f"personal models against each owner alone, in the owner's own conditions: "
+              f"{s['personal-minus-alone-points']:+.0f} points on average (target >= +20); / centralised there: "
+              + ("n/a (centralised 0%)" if ratio is None else f"{ratio:.2f} (target >= 0.95)"))  # fmt: skip
 
 
 def rate_cell(rates: dict) -> str:
@@ -342,6 +370,11 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument(
         "--sim-episodes", type=positive(int), default=10, help="closed-loop episodes per model and condition (sim)"
     )
+    parser.add_argument(
+        "--personal-steps", type=int, default=0,
+        help="also each owner's personal model: the first federation's model fine-tuned this many steps on its own "
+        "data at a quarter of --lr (zk0.personal), and each local-only model fine-tuned alike; 0 = none",
+    )  # fmt: skip
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-study")
     parser.add_argument("--json", help="the figures (default: <output-dir>/study.json)")
@@ -353,6 +386,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     args.federation_lr = args.federation_lr or args.lr
+    if args.personal_steps < 0:
+        parser.error(f"--personal-steps got {args.personal_steps}; expected 0 (none) or more")
     for setting in args.settings:
         available = len(load_registry(SETTINGS[setting]).clients)
         if args.clients > available:
