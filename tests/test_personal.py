@@ -65,3 +65,28 @@ def test_the_personal_model_beats_the_global_one_on_its_owners_episodes_and_stay
     params = dict(loaded.named_parameters())
     assert any(not np.allclose(params[name].detach().numpy(), value.numpy()) for name, value in start.items())
     assert not (tmp_path / "plain" / "r" / "clients" / "client_0" / "models").exists()
+
+
+def test_a_simulated_owner_rolls_both_models_out_in_its_own_conditions(tmp_path):
+    """With sim-eval-episodes an owner recorded in the simulator also judges the global and the personal
+    model in its own set-up, each rate with its interval, and the folder keeps both figures."""
+    from zk0.assets import ensure_dataset
+    from zk0.personal import build_personaliser
+    from zk0.registry import load_registry
+
+    registry = load_registry("configs/sim-registry.toml")
+    entry = registry.get("sim-so101-left")
+    ensure_dataset(entry.name)
+    run = from_run_config({"registry": "configs/sim-registry.toml", "server-eval-dataset": "sim-so101-eval",
+                           "model": "tiny-128", "batch-size": 2, "personal-steps": 2, "sim-eval-episodes": 2})  # fmt: skip
+    session = client.build_client(run, entry, registry.model_cameras())
+    personaliser = build_personaliser(run, session.bundle, session.split, session.eval_batches)
+    try:
+        metrics = personaliser(1, tmp_path, {"action-mse": 1.0})
+    finally:
+        personaliser.close()
+    for prefix in ("own-", "personal-own-"):
+        assert metrics[f"{prefix}episodes"] == 2
+        assert metrics[f"{prefix}success-low"] <= metrics[f"{prefix}success-rate"] <= metrics[f"{prefix}success-high"]
+    kept = json.loads((tmp_path / "models" / "personal" / "zk0_round.json").read_text())["evaluate"]
+    assert kept["action-mse"] == 1.0 and kept["personal-own-episodes"] == 2
