@@ -67,6 +67,9 @@ def test_local_epochs_is_an_alias_of_local_steps():
         ({"device": "cuda:x"}, ["'device'", "'cuda:x'"]),
         ({"phase-timeout": 0}, ["'phase-timeout'", "> 0"]),
         ({"frame-cache-gb": -1}, ["'frame-cache-gb'", "-1.0", ">= 0"]),
+        ({"personal-steps": -5}, ["'personal-steps'", "-5", ">= 0"]),
+        ({"personal-lr": 2.0}, ["'personal-lr'", "2.0", "<= 1"]),
+        ({"personal-mu": -0.1}, ["'personal-mu'", "-0.1", ">= 0"]),
     ],
 )
 def test_bad_values_fail_with_one_sentence(overrides, needles):

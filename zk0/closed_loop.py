@@ -31,7 +31,7 @@ from lerobot.envs.utils import preprocess_observation
 from lerobot.utils.constants import ACTION
 from lerobot.utils.io_utils import write_video
 
-from zk0.policy import PolicyBundle
+from zk0.policy import PolicyBundle, rng_devices
 from zk0.rates import rate_metrics
 from zk0.sim.env import PickCubeEnv
 from zk0.sim.lerobot_env import PickCubeEnvConfig
@@ -80,7 +80,7 @@ class ClosedLoop:
         frames: list[np.ndarray] | None = [] if video else None
         batch = len(self.envs)
         done: list[Episode] = []
-        with torch.random.fork_rng(devices=_cuda_devices(bundle)):
+        with torch.random.fork_rng(devices=rng_devices(bundle)):
             torch.manual_seed(self.seed)
             for first in range(0, self.episodes, batch):
                 seeds = range(self.seed + first, self.seed + min(first + batch, self.episodes))
@@ -149,8 +149,3 @@ def summary(episodes: Sequence[Episode]) -> dict[str, float]:
     metrics |= {f"{grade}-rate": float(np.mean([getattr(e, grade) for e in episodes])) for grade in GRADES}
     metrics["episode-length"] = float(np.mean([e.steps for e in episodes]))
     return metrics
-
-
-def _cuda_devices(bundle: PolicyBundle) -> list[int]:
-    device = torch.device(bundle.device)
-    return [device.index or 0] if device.type == "cuda" else []

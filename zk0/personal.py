@@ -26,7 +26,7 @@ from zk0.artifacts import save_checkpoint
 from zk0.closed_loop import ClosedLoop
 from zk0.config import RunConfig
 from zk0.data import DatasetSplit, train_loader
-from zk0.policy import PolicyBundle, set_trainable, snapshot
+from zk0.policy import PolicyBundle, rng_devices, set_trainable, snapshot
 from zk0.sim.tasks import SIM_SPECS
 from zk0.training import LocalTrainer, evaluate
 
@@ -38,8 +38,7 @@ class Personaliser:
     """The owner's fine-tuning: a trainer with its own loader and optimizer over the client's policy,
     and, for a simulated owner, the closed loop in its own conditions (both built once per run)."""
 
-    run: RunConfig
-    split: DatasetSplit
+    run: RunConfig  # the client's (the trainer's own has the fine-tune's rate and length)
     eval_batches: DataLoader
     trainer: LocalTrainer
     closed_loop: ClosedLoop | None = field(default=None)
@@ -52,14 +51,14 @@ class Personaliser:
         bundle, run = self.trainer.bundle, self.run
         global_weights = snapshot(bundle)
         metrics: dict[str, float] = {}
-        with torch.random.fork_rng(devices=[bundle.device] if bundle.device.type == "cuda" else []):
+        with torch.random.fork_rng(devices=rng_devices(bundle)):
             if self.closed_loop:
                 metrics |= own_conditions(self.closed_loop(bundle), "")
             self.trainer.optimizer.state.clear()  # each fine-tune starts afresh from the global model
             self.trainer.restore(evaluated_round * run.personal_steps, None)  # a data position of its own
             trained = self.trainer.fit(run.personal_steps, run.personal_mu, global_step=0)
             personal = evaluate(
-                bundle, self.split, self.eval_batches, run.eval_batches, run.seed, run.max_skip_fraction
+                bundle, self.trainer.split, self.eval_batches, run.eval_batches, run.seed, run.max_skip_fraction
             )
             metrics |= {f"personal-{key}": personal[key] for key in ("action-mse", "policy-loss")}
             metrics["personal-train-loss"] = trained["train-loss"]
@@ -95,7 +94,7 @@ def build_personaliser(
     if run.sim_eval_episodes and split.entry.name in SIM_SPECS:
         height, width, _ = split.meta.features["observation.images.front"]["shape"]
         closed_loop = ClosedLoop(split.entry.name, run.sim_eval_episodes, run.seed, height, width)
-    return Personaliser(run, split, eval_batches, trainer, closed_loop)
+    return Personaliser(run, eval_batches, trainer, closed_loop)
 
 
 def own_conditions(rates: dict[str, float], prefix: str) -> dict[str, float]:

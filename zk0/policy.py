@@ -206,6 +206,12 @@ def trainable_tensors(bundle: PolicyBundle) -> dict[str, torch.Tensor]:
     return {name: params[name].detach().to("cpu", torch.float32) for name in bundle.trainable_names}
 
 
+def rng_devices(bundle: PolicyBundle) -> list[torch.device]:
+    """The devices whose random state ``torch.random.fork_rng`` must save for this policy (the CPU's
+    always is): where its noise is drawn."""
+    return [bundle.device] if bundle.device.type == "cuda" else []
+
+
 def snapshot(bundle: PolicyBundle) -> dict[str, torch.Tensor]:
     """A copy of the trainable parameters (fp32, CPU) that later training leaves as it is."""
     return {name: tensor.clone() for name, tensor in trainable_tensors(bundle).items()}

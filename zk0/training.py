@@ -34,7 +34,7 @@ from zk0.config import RunConfig
 from zk0.data import DatasetSplit, prepare_batch
 from zk0.errors import Zk0Error
 from zk0.internals import set_last_lr
-from zk0.policy import PolicyBundle
+from zk0.policy import PolicyBundle, rng_devices
 
 
 class TrainingError(Zk0Error):
@@ -390,7 +390,7 @@ def evaluate(
         index = len(losses)
         raw_action, is_pad = batch["action"].clone(), batch["action_is_pad"].clone()
         batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task, bundle.device))
-        with torch.random.fork_rng(devices=[bundle.device] if bundle.device.type == "cuda" else []), autocast:
+        with torch.random.fork_rng(devices=rng_devices(bundle)), autocast:
             torch.manual_seed(seed + index)  # same noise and time every round: losses are comparable
             loss, _ = policy.forward(batch)
             policy.reset()

@@ -96,17 +96,17 @@ def closed_loop_cost(episodes: int, reference: int) -> dict:
     run = RunConfig(registry=SIM_REGISTRY, server_eval_dataset=CONDITIONS, model="tiny-128")
     bundle = build_policy(run, open_metadata(entry), entry, registry.model_cameras())
     loop = ClosedLoop(CONDITIONS, episodes, run.seed, 128, 128)
+    env = make_env(loop.config, n_envs=1)[loop.config.type][0]
     try:
         wall = time.perf_counter()
         rates = loop(bundle)
         fast = time.perf_counter() - wall
-        env = make_env(loop.config, n_envs=1)[loop.config.type][0]
         wall = time.perf_counter()
         eval_policy(env, bundle.policy, loop.env_preprocessor, loop.env_postprocessor, bundle.preprocessor,
                     bundle.postprocessor, n_episodes=reference, start_seed=run.seed)  # fmt: skip
         slow = time.perf_counter() - wall
-        env.close()
     finally:
+        env.close()
         loop.close()
     return {"episodes": episodes, "batch": len(loop.envs), "seconds": fast, "seconds-per-episode": fast / episodes,
             "reference-episodes": reference, "reference-seconds-per-episode": slow / reference,
