@@ -1,10 +1,12 @@
-"""Success rates with their noise: Wilson intervals on known cases, McNemar's exact test."""
+"""Success rates with their noise: Wilson intervals on known cases, McNemar's exact test, the bootstrap."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 
-from zk0.rates import compare_text, mcnemar, rate_metrics, rate_text, wilson
+from zk0.rates import bootstrap, compare_text, mcnemar, rate_metrics, rate_text, wilson
 
 
 @pytest.mark.parametrize(
@@ -46,3 +48,31 @@ def test_mcnemar_counts_only_the_episodes_where_the_models_disagree():
     assert compare_text(first, second).startswith("+27 points (within the noise")
     with pytest.raises(ValueError, match="the same episodes: got 2 and 3"):
         mcnemar([True, False], [True, False, True])
+
+
+def mean_rate(name: str):
+    return lambda v: v[name].mean(axis=(-2, -1))
+
+
+def test_the_bootstrap_keeps_pairs_and_gives_the_normal_interval_where_it_applies():
+    """Two models on the same 100 episodes, disagreeing on 20 (a: +20 of them): the paired
+    difference's standard error is sqrt(0.2 * 0.8 / 100) = 0.04, so about +-0.078 around +0.2; an
+    unpaired bootstrap would be twice as wide."""
+    outcomes = {"a": [[1] * 50 + [0] * 50], "b": [[1] * 30 + [0] * 70]}
+    low, high = bootstrap(outcomes, lambda v: (v["a"] - v["b"]).mean(axis=(-2, -1)))
+    assert low == pytest.approx(0.2 - 0.078, abs=0.02) and high == pytest.approx(0.2 + 0.078, abs=0.02)
+    assert bootstrap(outcomes, mean_rate("a")) == pytest.approx(wilson(50, 100), abs=0.02)
+    # the same model against itself: no difference in any draw
+    assert bootstrap({"a": outcomes["a"]}, lambda v: (v["a"] - v["a"]).mean(axis=(-2, -1))) == (0.0, 0.0)
+
+
+def test_the_bootstrap_draws_within_each_seed_and_says_when_a_ratio_has_no_figure():
+    """Three training seeds of 10 episodes: each seed's row is drawn from its own episodes, so a
+    seed that always succeeds stays at 100% and the mean over seeds moves only by the others."""
+    rows = [[1] * 10, [0] * 10, [1] * 5 + [0] * 5]
+    low, high = bootstrap({"a": rows}, mean_rate("a"))
+    assert 1 / 3 < low <= 0.5 <= high < 2 / 3  # the first two seeds never move: (1 + 0 + [0, 1]) / 3
+    ratio = bootstrap(
+        {"a": rows, "zero": [[0] * 10] * 3}, lambda v: v["a"].mean(axis=(-2, -1)) / v["zero"].mean(axis=(-2, -1))
+    )
+    assert all(math.isnan(x) for x in ratio)

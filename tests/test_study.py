@@ -13,6 +13,7 @@ import torch
 from zk0.assets import ensure_dataset
 from zk0.client import build_client
 from zk0.policy import build_policy, set_trainable, snapshot
+from zk0.rates import wilson
 from zk0.registry import load_registry
 from zk0.training import PooledTrainer
 
@@ -80,8 +81,12 @@ def test_a_wide_step_takes_a_batch_from_every_client_each_normalised_as_its_clie
     noise, time = torch.randn(2 * batch, cfg.chunk_size, cfg.max_action_dim), torch.rand(2 * batch) * 0.9 + 0.05
     with torch.no_grad():
         together = policy.forward(prepared, noise=noise, time=time, reduction="none")[0]
-        apart = [policy.forward(o, noise=noise[i * batch : (i + 1) * batch], time=time[i * batch : (i + 1) * batch],
-                                reduction="none")[0] for i, o in enumerate(own)]
+        apart = [
+            policy.forward(
+                o, noise=noise[i * batch : (i + 1) * batch], time=time[i * batch : (i + 1) * batch], reduction="none"
+            )[0]
+            for i, o in enumerate(own)
+        ]
     assert torch.allclose(together, torch.cat(apart), rtol=1e-4, atol=1e-6)
 
     wide.fit(2, mu=0.0, global_step=0)
@@ -89,14 +94,16 @@ def test_a_wide_step_takes_a_batch_from_every_client_each_normalised_as_its_clie
 
 
 @pytest.mark.e2e
-def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(tmp_path, capsys):
+def test_study_fills_every_row_and_column_evaluates_as_the_federation_does_and_continues(tmp_path, capsys):
     from zk0.bench.study import main
 
     argv = ["--settings", "noniid", "--clients", "2", "--rounds", "2", "--local-steps", "2"]
     argv += ["--federations", "FedProx", "--personal-steps", "2"]  # one: each is a whole `flwr run`
-    assert main([*argv, "--output-dir", str(tmp_path), "--batch-size", "4"]) == 0
+    argv += ["--output-dir", str(tmp_path), "--batch-size", "4", "--seeds", "7"]
+    assert main(argv) == 0
     out = capsys.readouterr().out
-    result = json.loads((tmp_path / "study.json").read_text())["results"]["noniid"]
+    figures = json.loads((tmp_path / "study.json").read_text())["results"]["noniid"]
+    result = figures["seeds"]["7"]
     matrix = result["matrix"]
     assert list(matrix) == ["start", "FedProx", "centralised", "local 0", "local 1", "personal 0", "personal 1",
                             "equal steps"]  # fmt: skip
@@ -104,6 +111,7 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     for row in matrix.values():
         assert list(row) == ["client 0", "client 1", "server"]
         assert all(math.isfinite(v[k]) and v[k] > 0 for v in row.values() for k in ("action-mse", "policy-loss"))
+    assert figures["over-seeds"]["matrix"] == matrix  # the mean of one seed
     clients = ["synth-so100-pickplace-noniid", "synth-so100-stacking-noniid"]
     assert list(result["clients"].values()) == clients
     # all clients' steps in the federation (2 rounds x 2 steps x 2 clients), half from each, batch 4
@@ -115,14 +123,42 @@ def test_study_fills_every_row_and_column_and_evaluates_as_the_federation_does(t
     assert result["summary"]["equal-steps-vs-centralised"] == pytest.approx(
         matrix["equal steps"]["server"]["action-mse"] / matrix["centralised"]["server"]["action-mse"]
     )
+    assert "setting noniid, training seed 7: 2 clients" in out
     assert "FedProx / centralised, server action MSE: " in out
     assert "FedProx / equal steps, server action MSE: " in out
     assert "better than every local-only model on the other clients' held-out episodes" in out
-    said = [line.split(": ", 1)[1].rsplit(" (", 1)[0] for line in out.splitlines() if line.startswith("  noniid: ")]
-    assert said == ["federation FedProx trained", "centralised trained", "local-only models trained",
-                    "personal models (FedProx fine-tuned) and local-only models fine-tuned alike",
-                    "equal steps trained", "every model evaluated on every held-out set"]  # progress as it goes
+    said = [
+        line.split(": ", 1)[1].rsplit(" (", 1)[0] for line in out.splitlines() if line.startswith("  noniid, seed 7: ")
+    ]
+    assert said == [
+        "federation FedProx trained",
+        "centralised trained",
+        "local-only models trained",
+        "personal models (FedProx fine-tuned) and local-only models fine-tuned alike",
+        "equal steps trained",
+        "every model evaluated on every held-out set",
+    ]  # progress as it goes
     assert (tmp_path / "study.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # Stopped after the federation and some of the models: the same command continues, trains only
+    # what is missing (each model from the start of its data order) and ends with the same figures.
+    kept = tmp_path / "noniid" / "seed-7"
+    federation = sorted(kept.glob("federation-fedprox/*/server/metrics_history.json"))
+    assert len(federation) == 1
+    written = federation[0].stat().st_mtime_ns
+    for name in ("models/local-0.safetensors", "models/local-0-fine-tuned.safetensors", "models/personal-1.safetensors",
+                 "offline/local-0.json", "offline/personal-1.json", "offline/equal-steps.json"):  # fmt: skip
+        (kept / name).unlink()
+    assert main(argv) == 0
+    again = json.loads((tmp_path / "study.json").read_text())["results"]["noniid"]["seeds"]["7"]
+    assert again["matrix"] == matrix and again["centralised-samples-from"] == result["centralised-samples-from"]
+    assert federation[0].stat().st_mtime_ns == written, "the finished federation is not run again"
+    capsys.readouterr()
+    assert main([*argv[:7], "3", *argv[8:]]) == 2  # other local steps: refused before anything trains
+    assert capsys.readouterr().err == (
+        f"[zk0] {str(kept)!r} holds models trained with local_steps = 2, not 3: give another --output-dir, "
+        "or remove that folder to start over.\n"
+    )
 
 
 @pytest.mark.slow
@@ -130,9 +166,11 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     """The sim setting's closed-loop matrix (the federations that feed it are the other settings'
     code, tested end to end above): every model in the server's conditions and each client's own,
     with that set's processors; the start in the server's only; the targets computed from it."""
-    from zk0.bench.study import closed_loop_all, evaluation_sets, sim_summary, study_run
+    from zk0.bench.study import closed_loop_all, evaluation_sets, rollout_plan, sim_summary, study_run
 
-    args = argparse.Namespace(rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128", personal_steps=0)
+    args = argparse.Namespace(
+        rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128", personal_steps=0
+    )
     registry_path = "configs/sim-registry.toml"
     registry = load_registry(registry_path)
     run = study_run(args, registry_path)
@@ -144,7 +182,7 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     start = snapshot(sessions[0].bundle)
     labels = ["start", "FedAvg", "centralised", "local 0", "local 1"]  # one federation: each is a rollout per set
     said = []
-    success = closed_loop_all(dict.fromkeys(labels, start), columns, run, 1, said.append)
+    success = closed_loop_all(rollout_plan(labels, 2), dict.fromkeys(labels, start), columns, 1, run.seed, said.append)
     assert said == [f"every model rolled out in {column}'s conditions" for column in ("client 0", "client 1", "server")]
     assert list(success) == labels and list(success["start"]) == ["server"]
     for label in labels[1:]:
@@ -187,8 +225,70 @@ def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(
     assert "FedAvg / centralised, success in the server's conditions: 0.25 (target >= 0.9)" in out
     assert "% [95% interval] of 10 seeded episodes" in out and "10 [2, 40]" in out  # FedAvg's 1 of 10
     assert "  FedAvg against local 0 in client 0's conditions: -40 points (within the noise, McNemar p = 0.12)" in out
-    assert "  personal 0 against local 0 in client 0's conditions: +40 points (within the noise, McNemar p = 0.12)" in out
+    assert (
+        "  personal 0 against local 0 in client 0's conditions: +40 points (within the noise, McNemar p = 0.12)" in out
+    )
     # (90% - 50% + 70% - 60%) / 2 = +25 points; personal 80% on average in their own against centralised 20%
     assert "in the owner's own conditions: +25 points on average (target >= +20); / centralised there: 4.00" in out
     # client 0's model in client 1's conditions: 0% against FedAvg's 30%; client 1's in client 0's: 20% against 10%
     assert "FedAvg succeeds more than every local-only model in the conditions that client never saw: False" in out
+
+
+def test_over_seeds_every_rate_has_its_mean_spread_and_interval_and_the_targets_theirs(capsys):
+    """Two training seeds of ten episodes: the tables give each rate's mean over the seeds, its
+    Wilson interval over all twenty episodes and the lowest and highest seed; the targets are
+    computed from the paired episodes of both seeds."""
+    from zk0.bench.study import over_seeds, print_over_seeds
+
+    def seeded(successes: dict[str, list[int]]) -> list[dict]:
+        """Per seed, per model: its successes in each set (the first k of ten episodes succeed)."""
+        runs = []
+        for seed in (0, 1):
+            success = {}
+            for name, counts in successes.items():
+                label, column = name.split(" | ")
+                outcomes = [1] * counts[seed] + [0] * (10 - counts[seed])
+                success.setdefault(label, {})[column] = {"outcomes": outcomes}
+            matrix = {"FedAvg": {"server": {"action-mse": 2.0 + seed}}}
+            runs.append({"seed": seed, "matrix": matrix, "success": success})
+        return runs
+
+    counts = {
+        "FedAvg | client 0": [4, 2], "FedAvg | server": [3, 3],
+        "centralised | client 0": [6, 4], "centralised | server": [6, 6],
+        "local 0 | client 0": [2, 4], "local 0 | server": [0, 0],
+        "personal 0 | client 0": [9, 7], "personal 0 | server": [1, 1],
+    }  # fmt: skip
+    result = over_seeds(seeded(counts), clients=1)
+    assert result["matrix"] == {"FedAvg": {"server": {"action-mse": 2.5}}}
+    personal = result["success"]["personal 0"]["client 0"]
+    assert personal["success-rate"] == 0.8 and (personal["seed-min"], personal["seed-max"]) == (0.7, 0.9)
+    assert (personal["success-low"], personal["success-high"]) == pytest.approx(wilson(16, 20))
+    assert personal["episodes"] == 10 and personal["seeds"] == 2 and personal["per-seed"] == [0.9, 0.7]
+    t = result["success-summary"]
+    assert t["personal-minus-alone-points"]["value"] == pytest.approx(50.0)  # 80% against 30%
+    assert t["personal-minus-alone-points"]["low"] > 20  # 10 of 20 pairs for personal, none against
+    assert t["each-owner"]["client 0"] == {"points": pytest.approx(50.0), "mcnemar-p": pytest.approx(2 / 2**10)}
+    assert t["personal-vs-centralised-own"]["value"] == pytest.approx(0.8 / 0.5)
+    assert t["vs-centralised"]["FedAvg"]["value"] == pytest.approx(0.5)  # 30% against 60%
+    assert t["vs-centralised-every-set"]["FedAvg"]["value"] == pytest.approx((0.3 + 0.3) / (0.5 + 0.6))
+    assert t["personal-in-server-span"]["value"] == pytest.approx(0.1)
+    print_over_seeds("sim-cube", {**result, "seeds": [0, 1]})
+    out = capsys.readouterr().out
+    assert "mean % over the seeds [95% interval of every seed's 10 episodes] (lowest-highest seed)" in out
+    assert "80 [58, 92] (70-90)" in out  # personal 0 in client 0's conditions
+    assert "personal models against each owner alone, own conditions: +50 [" in out
+    assert "  client 0: +50 points (McNemar p = 0.002 over every seed's pairs)" in out
+
+
+def test_each_model_is_rolled_out_where_its_figure_is_read():
+    """Every model in the server's span; in an owner's own conditions every model but the other
+    owners' personal ones and the equal-steps baseline (an offline question); the start only in the server's."""
+    from zk0.bench.study import rollout_plan
+
+    labels = ["start", "Nesterov", "centralised", "local 0", "local 1", "personal 0", "personal 1", "equal steps"]
+    assert rollout_plan(labels, 2) == {
+        "client 0": ["Nesterov", "centralised", "local 0", "local 1", "personal 0"],
+        "client 1": ["Nesterov", "centralised", "local 0", "local 1", "personal 1"],
+        "server": ["start", "Nesterov", "centralised", "local 0", "local 1", "personal 0", "personal 1"],
+    }

@@ -4,13 +4,16 @@ Closed-loop success is *k* successes in *n* seeded episodes. With 20 episodes a 
 has a standard error of about 11 points, so every rate zk0 prints or writes carries *n* and a
 95% Wilson score interval (which, unlike the normal approximation, stays inside [0, 1] and is
 not [0, 0] at 0/n). Two models rolled out on the same seeded episodes are compared pairwise:
-McNemar's exact test looks only at the episodes where they disagree.
+McNemar's exact test looks only at the episodes where they disagree. A figure over several training
+seeds (a mean, a difference, a ratio) gets a bootstrap interval over the episodes.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+
+import numpy as np
 
 Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
 
@@ -73,3 +76,32 @@ def compare_text(first: Sequence[bool], second: Sequence[bool]) -> str:
     p = mcnemar(first, second)
     verdict = "beyond the noise" if p < 0.05 else "within the noise"
     return f"{difference:+.0f} points ({verdict}, McNemar p = {p:.2g})"
+
+
+def bootstrap(
+    outcomes: dict[str, Sequence[Sequence[int]]],
+    statistic: Callable[[dict[str, np.ndarray]], np.ndarray],
+    draws: int = 2000,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """The 95% percentile interval of ``statistic`` over episodes drawn again with replacement.
+
+    ``outcomes`` maps a name (a model in a set of conditions) to one row of per-episode outcomes
+    per training seed, every row the same length. Each draw takes one set of episode indices per
+    row and uses it for every name, so models rolled out on the same episodes stay paired (and
+    sets of conditions, whose episodes are independent, are drawn jointly, which is as valid).
+    ``statistic`` maps name -> array ``[..., seeds, episodes]`` to ``[...]``, as numpy does: it is
+    called once, on every draw together. The interval is the episodes' noise; how much training
+    seeds differ is the spread between rows, reported beside it.
+    """
+    arrays = {name: np.asarray(rows, dtype=float) for name, rows in outcomes.items()}
+    seeds, episodes = next(iter(arrays.values())).shape
+    index = np.random.default_rng(seed).integers(0, episodes, size=(draws, seeds, episodes))
+    rows = np.arange(seeds)[None, :, None]
+    with np.errstate(divide="ignore", invalid="ignore"):  # a ratio over a draw with no success is no figure
+        values = np.asarray(statistic({name: a[rows, index] for name, a in arrays.items()}), dtype=float)
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return math.nan, math.nan
+    low, high = np.quantile(values, [0.025, 0.975])
+    return float(low), float(high)

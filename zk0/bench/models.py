@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 
 from zk0.assets import ensure_dataset
+from zk0.bench.stash import Stash
 from zk0.client import ClientSession
 from zk0.config import RunConfig
 from zk0.data import eval_loader, open_evaluation, open_metadata
@@ -78,6 +79,13 @@ def generate(registry: Registry, demos: int) -> None:
             ensure_dataset(entry.name, episodes=demos if simulated else None)
 
 
+def from_the_start(sessions: list[ClientSession]) -> None:
+    """Each client's data order back at its first batch: a model then trains on the same batches
+    whatever was trained before it, or kept from an earlier run (zk0.bench.stash)."""
+    for session in sessions:
+        session.trainer.restore(0, None)
+
+
 def centralised(
     sessions: list[ClientSession], run: RunConfig, start: Weights, cameras: list[str], wide: bool = False
 ) -> tuple[Weights, dict[str, int]]:
@@ -93,6 +101,7 @@ def centralised(
         pooled_run = replace(run, batch_size=run.batch_size * clients)
     else:
         pooled_run = replace(run, local_steps=run.local_steps * clients)
+    from_the_start(sessions)
     first = sessions[0]
     bundle = build_policy(pooled_run, first.split.meta, first.split.entry, cameras)
     set_trainable(bundle, start)
@@ -103,6 +112,7 @@ def centralised(
 
 def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
     """One client alone, for the steps it takes in the federation."""
+    from_the_start([session])
     set_trainable(session.bundle, start)
     session.trainer.fit(run.total_steps, mu=0.0, global_step=0)
     return snapshot(session.bundle)
@@ -128,39 +138,67 @@ def evaluation_sets(sessions: list[ClientSession], registry: Registry, run: RunC
     return columns
 
 
-def evaluate_all(models: dict[str, Weights], columns: dict, run: RunConfig) -> dict[str, dict[str, dict]]:
-    """Every model on every evaluation set: {model: {column: {action-mse, policy-loss}}}."""
-    matrix: dict[str, dict[str, dict]] = {}
-    for label, weights in models.items():
+def evaluate_all(
+    models: dict[str, Weights], columns: dict, run: RunConfig, stash: Stash | None = None
+) -> dict[str, dict[str, dict]]:
+    """Every model on every evaluation set: {model: {column: {action-mse, policy-loss}}} (each
+    model's row kept in ``stash``, or taken from it)."""
+
+    def row(weights: Weights) -> dict[str, dict]:
+        figures = {}
         for column, (bundle, split, loader) in columns.items():
             set_trainable(bundle, weights)
             m = evaluate(bundle, split, loader, run.eval_batches, run.seed, run.max_skip_fraction)
-            matrix.setdefault(label, {})[column] = {"action-mse": m["action-mse"], "policy-loss": m["policy-loss"]}
-    return matrix
+            figures[column] = {"action-mse": m["action-mse"], "policy-loss": m["policy-loss"]}
+        return figures
+
+    if stash is None:
+        return {label: row(weights) for label, weights in models.items()}
+    return {label: stash.figures(f"offline/{label}", lambda w=weights: row(w)) for label, weights in models.items()}
 
 
 def closed_loop_all(
-    models: dict[str, Weights], columns: dict, run: RunConfig, episodes: int, say: Callable[[str], None]
+    plan: dict[str, list[str]],
+    models: dict[str, Weights],
+    columns: dict,
+    episodes: int,
+    seed: int,
+    say: Callable[[str], None],
+    stash: Stash | None = None,
 ) -> dict:
-    """Every trained model's success in closed loop, in each evaluation set's conditions (the server's
-    span, and each client's own set-up), with that set's processors: {model: {column: rates}}, each
-    with its interval and its per-episode ``outcomes`` (1 = success, in seed order: every model meets
-    the same episodes, so two can be compared pairwise). The untrained start is rolled out in the
-    server's conditions only."""
+    """Models' success in closed loop in evaluation sets' conditions (the server's span, and each
+    client's own set-up), with that set's processors: ``plan`` names, for each column, the models to
+    roll out there. {model: {column: rates}}, each with its interval and its per-episode
+    ``outcomes`` (1 = success, in seed order: every model meets the same ``episodes`` episodes,
+    seeded from ``seed``, so two can be compared pairwise). Each rollout's figures are kept in
+    ``stash`` as it finishes, or taken from it; a set whose rollouts are all kept builds no envs."""
     from zk0.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
 
+    def name(column: str, label: str) -> str:
+        return f"rollouts-{episodes}/{column}/{label}"
+
     matrix: dict[str, dict[str, dict]] = {label: {} for label in models}
-    for column, (bundle, split, _) in columns.items():
+    for column, labels in plan.items():
+        bundle, split, _ = columns[column]
+        if stash is not None and all(stash.has(name(column, label)) for label in labels):
+            for label in labels:
+                matrix[label][column] = stash.figures(name(column, label), dict)
+            say(f"every model rolled out in {column}'s conditions (kept from an earlier run)")
+            continue
         height, width, _ = split.meta.features["observation.images.front"]["shape"]
-        loop = ClosedLoop(split.entry.name, episodes, run.seed, height, width)
+        loop = ClosedLoop(split.entry.name, episodes, seed, height, width)
+
         try:
-            for label, weights in models.items():
-                if label == "start" and column != SERVER:
-                    continue
-                set_trainable(bundle, weights)
-                rolled = loop.rollouts(bundle)
-                matrix[label][column] = {**summary(rolled), "outcomes": [int(e.success) for e in rolled]}
+            for label in labels:
+
+                def rollout(weights: Weights = models[label], bundle=bundle, loop=loop) -> dict:
+                    set_trainable(bundle, weights)
+                    rolled = loop.rollouts(bundle)
+                    return {**summary(rolled), "outcomes": [int(e.success) for e in rolled]}
+
+                kept = stash.figures(name(column, label), rollout) if stash is not None else rollout()
+                matrix[label][column] = kept
         finally:
             loop.close()
         say(f"every model rolled out in {column}'s conditions")
-    return matrix
+    return {label: row for label, row in matrix.items() if row}

@@ -46,6 +46,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import shutil
 import statistics
 import sys
 import time
@@ -69,11 +71,12 @@ from zk0.bench.models import (
     generate,
     local_only,
 )  # fmt: skip
+from zk0.bench.stash import Stash
 from zk0.client import build_client
 from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.errors import OneSentenceParser, positive
+from zk0.errors import OneSentenceParser, Zk0Error, positive
 from zk0.policy import PolicyBundle, snapshot
-from zk0.rates import compare_text
+from zk0.rates import bootstrap, compare_text, mcnemar, rate_metrics
 from zk0.registry import PROJECT_ROOT, load_registry
 from zk0.resume import find_resume_point
 
@@ -96,10 +99,11 @@ FEDERATIONS = {
 }
 
 
-def study_run(args: argparse.Namespace, registry: str) -> RunConfig:
-    """The in-process baselines' config: the federation's own keys (zk0.bench.learning.federate)."""
+def study_run(args: argparse.Namespace, registry: str, seed: int = RunConfig.seed) -> RunConfig:
+    """The in-process baselines' config: the federation's own keys (zk0.bench.models.federate)."""
     server = next(e.name for e in load_registry(registry).entries if e.role == "server")
     return RunConfig(
+        seed=seed,
         server_eval_dataset=server,
         num_server_rounds=args.rounds,
         local_steps=args.local_steps,
@@ -119,10 +123,17 @@ def progress(setting: str, started: float) -> Callable[[str], None]:
 
 
 def federated_models(
-    args: argparse.Namespace, setting: str, registry: str, server: PolicyBundle, say: Callable[[str], None]
+    args: argparse.Namespace,
+    setting: str,
+    seed: int,
+    server: PolicyBundle,
+    stash: Stash,
+    say: Callable[[str], None],
 ) -> dict[str, tuple[Weights, dict]] | None:
-    """Each of ``--federations`` through ``flwr run``: each final global model and the run's history
-    (None, after Flower's log and one sentence, if a federation failed)."""
+    """Each of ``--federations`` through ``flwr run`` with training seed ``seed``: each final
+    global model and the run's history, kept in ``stash`` (None, after Flower's log and one
+    sentence, if a federation failed)."""
+    registry = SETTINGS[setting]
     models = {}
     for label in args.federations:
         optimiser = FEDERATIONS[label]
@@ -136,11 +147,20 @@ def federated_models(
             "eval-frequency": args.rounds,
             "lr": args.federation_lr,
             "model": args.model,
+            "seed": seed,
         }
-        history = federate(args, args.rounds, f"{setting}-{label.lower()}", **keys)
-        if history is None:
-            return None
-        final = find_resume_point(history["run-dir"]).trainable(server).to_torch_state_dict()
+        name = f"federation {label}"
+        if not stash.has(name):
+            folder = stash.folder / f"federation-{label.lower()}"
+            shutil.rmtree(folder, ignore_errors=True)  # what a stopped run left: a federation starts over
+            history = federate(args, args.rounds, str(folder.relative_to(Path(args.output_dir))), **keys)
+            if history is None:
+                return None
+            stash.figures(name, lambda h=history: h)
+        history = stash.figures(name, dict)
+        final = stash.weights(
+            label, lambda h=history: find_resume_point(h["run-dir"]).trainable(server).to_torch_state_dict()
+        )
         models[label] = (final, history)
         say(f"federation {label} trained")
     return models
@@ -197,43 +217,87 @@ def summary(matrix: dict[str, dict[str, dict]], clients: int) -> dict:
     }
 
 
-def run_setting(args: argparse.Namespace, setting: str) -> dict | None:
-    """Train every model of one setting and evaluate each on every evaluation set (None: a federation failed)."""
+# What the models of a study depend on: a folder holding models trained otherwise is refused.
+TRAINING_KEYS = ("rounds", "local_steps", "batch_size", "model", "lr", "federation_lr", "proximal_mu", "federations",
+                 "server_lr", "server_momentum", "clients", "demos", "personal_steps", "wire_dtype")  # fmt: skip
+
+
+def rollout_plan(models: list[str], clients: int) -> dict[str, list[str]]:
+    """Which models are rolled out in which conditions: every model in the server's span (the
+    untrained start only there); in each owner's own, every model but the equal-steps baseline
+    (an offline question) and the other owners' personal models (no one else runs them)."""
+
+    def mine(label: str, column: str) -> bool:
+        return not label.startswith("personal ") or column == f"client {label.split()[-1]}"
+
+    plan = {f"client {c}": [m for m in models if m not in ("start", EQUAL_STEPS) and mine(m, f"client {c}")]
+            for c in range(clients)}  # fmt: skip
+    plan[SERVER] = [m for m in models if m != EQUAL_STEPS]
+    return plan
+
+
+def study_stash(args: argparse.Namespace, setting: str, seed: int) -> Stash:
+    """Where one setting's models of training seed ``seed`` are kept (refused if trained otherwise)."""
+    return Stash(Path(args.output_dir) / setting / f"seed-{seed}", {k: vars(args)[k] for k in TRAINING_KEYS})
+
+
+def run_seed(args: argparse.Namespace, setting: str, seed: int) -> dict | None:
+    """Train every model of one setting with training seed ``seed`` and evaluate each on every
+    evaluation set (None: a federation failed). What an earlier run of the same command finished is
+    taken from its folder (zk0.bench.stash), so a stopped study continues."""
     registry_path = SETTINGS[setting]
     registry = load_registry(registry_path)
-    run = study_run(args, registry_path)
+    run = study_run(args, registry_path, seed)
     generate(registry, args.demos)
     started = time.perf_counter()
+    stash = study_stash(args, setting, seed)
     cameras = registry.model_cameras()
     sessions = [build_client(run, entry, cameras, i) for i, entry in enumerate(registry.clients[: args.clients])]
     columns = evaluation_sets(sessions, registry, run)
     start = snapshot(sessions[0].bundle)
-    say = progress(setting, started)
-    federations = federated_models(args, setting, registry_path, columns[SERVER][0], say)
+    say = progress(f"{setting}, seed {seed}", started)
+    federations = federated_models(args, setting, seed, columns[SERVER][0], stash, say)
     if federations is None:
         return None
     models: dict[str, Weights] = {"start": start, **{label: w for label, (w, _) in federations.items()}}
-    models["centralised"], seen = centralised(sessions, run, start, cameras)
+
+    def pooled(wide: bool = False) -> Weights:
+        weights, samples = centralised(sessions, run, start, cameras, wide=wide)
+        if not wide:  # kept before the weights: kept weights always have their counts
+            stash.figures("centralised samples", lambda: samples)
+        return weights
+
+    models["centralised"] = stash.weights("centralised", pooled)
+    seen = stash.figures("centralised samples", dict)
     say("centralised trained")
     for session in sessions:
-        models[f"local {session.index}"] = local_only(session, run, start)
+        models[f"local {session.index}"] = stash.weights(
+            f"local {session.index}", lambda s=session: local_only(s, run, start)
+        )
     say("local-only models trained")
     if args.personal_steps:  # each owner's personal model, and its own model given the same extra steps
         federated = models[args.federations[0]]
         for session in sessions:
-            models[f"personal {session.index}"] = fine_tuned(session, run, federated)
-            models[f"local {session.index}"] = fine_tuned(session, run, models[f"local {session.index}"])
+            alone = models[f"local {session.index}"]
+            models[f"personal {session.index}"] = stash.weights(
+                f"personal {session.index}", lambda s=session: fine_tuned(s, run, federated)
+            )
+            models[f"local {session.index}"] = stash.weights(
+                f"local {session.index} fine-tuned", lambda s=session, w=alone: fine_tuned(s, run, w)
+            )
         say(f"personal models ({args.federations[0]} fine-tuned) and local-only models fine-tuned alike")
-    models[EQUAL_STEPS], _ = centralised(sessions, run, start, cameras, wide=True)  # last: the others' data order stays
+    models[EQUAL_STEPS] = stash.weights(EQUAL_STEPS, lambda: pooled(wide=True))
     say("equal steps trained")
-    matrix = evaluate_all(models, columns, run)
+    matrix = evaluate_all(models, columns, run, stash)
     say("every model evaluated on every held-out set")
     closed_loop = {}
     if setting in SIM_SETTINGS:
-        success = closed_loop_all(models, columns, run, args.sim_episodes, say)
+        plan = rollout_plan(list(models), len(sessions))
+        success = closed_loop_all(plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash)
         closed_loop = {"success": success, "success-summary": sim_summary(success, len(sessions))}
     return {
         **closed_loop,
+        "seed": seed,
         "registry": registry_path or "pyproject.toml",
         "clients": {f"client {s.index}": s.split.entry.name for s in sessions},
         "server": run.server_eval_dataset,
@@ -256,7 +320,7 @@ def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
     matrix = result["matrix"]
     columns = list(next(iter(matrix.values())))
     print(
-        f"\nsetting {setting}: {len(result['clients'])} clients ({', '.join(result['clients'].values())}), "
+        f"\nsetting {setting}, training seed {result['seed']}: {len(result['clients'])} clients ({', '.join(result['clients'].values())}), "
         f"server set {result['server']}; {args.rounds} rounds x {args.local_steps} steps, batch {args.batch_size}, "
         f"lr {args.lr} (federation {args.federation_lr})"
     )
@@ -321,6 +385,120 @@ def rate_cell(rates: dict) -> str:
     return f"{100 * rates['success-rate']:.0f} [{100 * rates['success-low']:.0f}, {100 * rates['success-high']:.0f}]"
 
 
+def over_seeds(runs: list[dict], clients: int) -> dict:
+    """One setting's figures over its training seeds: each model's mean action MSE per set and,
+    in the simulator, each success rate's mean, its spread between seeds and the mean's Wilson
+    interval (over every seed's episodes), and the targets with their bootstrap intervals."""
+    first = runs[0]
+    matrix = {label: {column: {metric: statistics.mean(r["matrix"][label][column][metric] for r in runs)
+                               for metric in cells} for column, cells in row.items()}
+              for label, row in first["matrix"].items()}  # fmt: skip
+    result = {"seeds": [r["seed"] for r in runs], "matrix": matrix}
+    if "success" not in first:
+        return result
+    outcomes = {f"{label} | {column}": [r["success"][label][column]["outcomes"] for r in runs]
+                for label, row in first["success"].items() for column in row}  # fmt: skip
+    success: dict[str, dict[str, dict]] = {}
+    for name, rows in outcomes.items():
+        label, column = name.split(" | ")
+        rates = [sum(row) / len(row) for row in rows]
+        pooled = rate_metrics(sum(rows, []))  # the mean over seeds: every seed has as many episodes
+        success.setdefault(label, {})[column] = {
+            **pooled, "episodes": len(rows[0]), "seeds": len(rows),
+            "seed-min": min(rates), "seed-max": max(rates), "per-seed": rates,
+        }  # fmt: skip
+    result["success"] = success
+    result["success-summary"] = targets_over_seeds(outcomes, clients, federations(first["success"]))
+    return result
+
+
+def targets_over_seeds(outcomes: dict[str, list[list[int]]], clients: int, labels: list[str]) -> dict:
+    """The sim targets over the seeds, each with its bootstrap interval: every federation's success
+    against centralised training's in the server's span and over all sets; each owner's personal
+    model against the owner alone (points, each owner's McNemar p over every seed's pairs) and
+    against centralised in the owner's own conditions."""
+
+    def rate(v: dict, label: str, column: str) -> np.ndarray:
+        return v[f"{label} | {column}"].mean(axis=(-2, -1))
+
+    def figure(statistic) -> dict[str, float]:
+        low, high = bootstrap(outcomes, statistic)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            point = float(statistic({k: np.asarray(rows, dtype=float) for k, rows in outcomes.items()}))
+        finite = lambda x: x if math.isfinite(x) else None  # noqa: E731  (JSON has no NaN)
+        return {"value": finite(point), "low": finite(low), "high": finite(high)}
+
+    columns = [*(f"client {c}" for c in range(clients)), SERVER]
+    every = lambda v, label: sum(rate(v, label, c) for c in columns) / len(columns)  # noqa: E731
+    targets = {
+        "vs-centralised": {f: figure(lambda v, f=f: rate(v, f, SERVER) / rate(v, "centralised", SERVER)) for f in labels},
+        "vs-centralised-every-set": {f: figure(lambda v, f=f: every(v, f) / every(v, "centralised")) for f in labels},
+    }  # fmt: skip
+    if f"personal 0 | {SERVER}" not in outcomes:
+        return targets
+    own = [(f"personal {c}", f"local {c}", f"client {c}") for c in range(clients)]
+    targets["personal-minus-alone-points"] = figure(
+        lambda v: 100 * sum(rate(v, p, c) - rate(v, a, c) for p, a, c in own) / clients
+    )
+    targets["personal-vs-centralised-own"] = figure(
+        lambda v: sum(rate(v, p, c) for p, _, c in own) / sum(rate(v, "centralised", c) for *_, c in own)
+    )
+    targets["each-owner"] = {}
+    for p, a, c in own:
+        mine, alone = (sum(outcomes[f"{m} | {c}"], []) for m in (p, a))  # every seed's episodes, paired
+        targets["each-owner"][c] = {
+            "points": 100 * (sum(mine) - sum(alone)) / len(mine), "mcnemar-p": mcnemar(mine, alone),
+        }  # fmt: skip
+    targets["personal-in-server-span"] = figure(lambda v: sum(rate(v, p, SERVER) for p, _, _ in own) / clients)
+    return targets
+
+
+def print_over_seeds(setting: str, result: dict) -> None:
+    """The closed-loop table over the training seeds and the targets, each with its interval."""
+    seeds = ", ".join(map(str, result["seeds"]))
+    success = result["success"]
+    columns = list(success["centralised"])
+    episodes = success["centralised"][SERVER]["episodes"]
+    print(f"\nsetting {setting} over training seeds {seeds}: closed-loop success, mean % over the seeds "
+          f"[95% interval of every seed's {episodes} episodes] (lowest-highest seed)")  # fmt: skip
+    print(f"{'':<22}" + "".join(f"{c:>20}" for c in columns))
+    for label, row in success.items():
+        cells = [seed_cell(row[c]) if c in row else "-" for c in columns]
+        print(f"{label:<22}" + "".join(f"{cell:>20}" for cell in cells))
+    t = result["success-summary"]
+    for label, f in t["vs-centralised"].items():
+        print(f"{label} / centralised, success in the server's conditions: {figure_text(f)}")
+    for label, f in t["vs-centralised-every-set"].items():
+        print(f"{label} / centralised, success over every set's conditions: {figure_text(f)} (target >= 0.9)")
+    if "personal-minus-alone-points" in t:
+        print(f"personal models against each owner alone, own conditions: "
+              f"{figure_text(t['personal-minus-alone-points'], points=True)} (target >= +20)")  # fmt: skip
+        for column, own in t["each-owner"].items():
+            print(
+                f"  {column}: {own['points']:+.0f} points (McNemar p = {own['mcnemar-p']:.2g} over every seed's pairs)"
+            )
+        print(f"personal models / centralised, own conditions: {figure_text(t['personal-vs-centralised-own'])} "
+              "(target >= 0.95)")  # fmt: skip
+        print(f"personal models in the server's span: {figure_text(t['personal-in-server-span'], percent=True)}")
+
+
+def seed_cell(rates: dict) -> str:
+    """``57 [52, 63] (49-64)``: the mean over seeds, its (Wilson) interval, the lowest and highest seed."""
+    return (f"{100 * rates['success-rate']:.0f} [{100 * rates['success-low']:.0f}, {100 * rates['success-high']:.0f}]"
+            f" ({100 * rates['seed-min']:.0f}-{100 * rates['seed-max']:.0f})")  # fmt: skip
+
+
+def figure_text(f: dict, points: bool = False, percent: bool = False) -> str:
+    """A target's figure with its interval: ``0.79 [0.71, 0.89]``, ``+24 [18, 30] points``, ``12% [8, 17]``."""
+    if f["value"] is None:
+        return "n/a (centralised 0%)"
+    if points:
+        return f"{f['value']:+.0f} [{f['low']:+.0f}, {f['high']:+.0f}] points"
+    if percent:
+        return f"{100 * f['value']:.0f}% [{100 * f['low']:.0f}, {100 * f['high']:.0f}]"
+    return f"{f['value']:.2f} [{f['low']:.2f}, {f['high']:.2f}]"
+
+
 def chart(results: dict[str, dict], path: Path) -> None:
     """One table per setting, models x evaluation sets: each cell's action MSE, coloured by how many
     times the best model's on that set it is (green: the best; red: ten times the best or more)."""
@@ -375,6 +553,11 @@ def build_parser() -> OneSentenceParser:
         help="also each owner's personal model: the first federation's model fine-tuned this many steps on its own "
         "data at a quarter of --lr (zk0.personal), and each local-only model fine-tuned alike; 0 = none",
     )  # fmt: skip
+    parser.add_argument(
+        "--seeds", nargs="+", type=int, default=[RunConfig.seed],
+        help="training seeds: every model is trained once per seed (the frozen backbone's start, the data order, "
+        "the noise) and rolled out on the same seeded episodes; the tables give the mean, the spread and intervals",
+    )  # fmt: skip
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-study")
     parser.add_argument("--json", help="the figures (default: <output-dir>/study.json)")
@@ -388,23 +571,37 @@ def main(argv: list[str] | None = None) -> int:
     args.federation_lr = args.federation_lr or args.lr
     if args.personal_steps < 0:
         parser.error(f"--personal-steps got {args.personal_steps}; expected 0 (none) or more")
+    if len(set(args.seeds)) != len(args.seeds) or min(args.seeds) < 0:
+        parser.error(f"--seeds got {' '.join(map(str, args.seeds))}; expected different seeds, each 0 or more")
     for setting in args.settings:
         available = len(load_registry(SETTINGS[setting]).clients)
         if args.clients > available:
             parser.error(f"--clients got {args.clients}; the {setting} setting has {available} client datasets")
     out = Path(args.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    try:  # before any training: a folder of models trained otherwise
+        for setting in args.settings:
+            for seed in args.seeds:
+                study_stash(args, setting, seed)
+    except Zk0Error as err:
+        print(f"[zk0] {err}", file=sys.stderr)
+        return 2
 
     results = {}
     for setting in args.settings:
-        result = run_setting(args, setting)
-        if result is None:
-            return 1
-        results[setting] = result
-        print_setting(setting, results[setting], args)
+        runs = []
+        for seed in args.seeds:
+            run = run_seed(args, setting, seed)
+            if run is None:
+                return 1
+            print_setting(setting, run, args)
+            runs.append(run)
+        results[setting] = {"over-seeds": over_seeds(runs, args.clients), "seeds": {str(r["seed"]): r for r in runs}}
+        if "success" in runs[0] and len(runs) > 1:
+            print_over_seeds(setting, results[setting]["over-seeds"])
     json_path, chart_path = Path(args.json or out / "study.json"), Path(args.chart or out / "study.png")
     json_path.write_text(json.dumps({"settings": vars(args), "results": results}, indent=2))
-    chart(results, chart_path)
+    chart({setting: result["over-seeds"] for setting, result in results.items()}, chart_path)
     print(f"\nfigures: {json_path}; chart: {chart_path}")
     return 0
 
