@@ -21,8 +21,9 @@ def arrays(a: float, b: float = 0.0, a_shape=(2, 3)) -> ArrayRecord:
     return ArrayRecord({"a": torch.full(a_shape, a), "b": torch.full((4,), b)})
 
 
-def reply(node: int, record: ArrayRecord, examples: int) -> Message:
-    """A client's train reply carrying ``record`` (per tensor, fp32 or already packed) as zk0 sends it."""
+def reply(node: int, record: ArrayRecord, examples: int, steps: int = 1) -> Message:
+    """A client's train reply carrying ``record`` (per tensor, fp32 or already packed) as zk0 sends it,
+    after ``steps`` local steps."""
     if set(record) != {PACKED, MANIFEST}:
         record = encode(record.to_torch_state_dict(), "float32")
     instruction = Message(
@@ -30,7 +31,7 @@ def reply(node: int, record: ArrayRecord, examples: int) -> Message:
         dst_node_id=node,
         message_type=MessageType.TRAIN,
     )
-    metrics = MetricRecord({"num-examples": examples, "train-loss": float(node)})
+    metrics = MetricRecord({"num-examples": examples, "local-steps": steps, "train-loss": float(node)})
     client = ConfigRecord({"index": node, "dataset": f"d{node}"})
     return Message(content=RecordDict({"arrays": record, "metrics": metrics, "client": client}), reply_to=instruction)
 
@@ -55,9 +56,16 @@ class Recorder:
 
 @pytest.fixture
 def strategy():
+    return validating()
+
+
+def validating(averaging: str = "fednova", update_clip: float = 0.0) -> ValidatingStrategy:
+    """zk0's strategy around plain averaging, as a round's replies meet it."""
     recorded = []
     strat = ValidatingStrategy(
         make_strategy("fedavg", 0.0, 0.9, min_train_nodes=2),
+        averaging=averaging,
+        update_clip=update_clip,
         expected=array_signature(arrays(0.0)),
         evaluates_in=lambda rnd: rnd % 2 == 0,
         observer=Recorder(recorded),
@@ -166,3 +174,37 @@ def test_a_failed_client_evaluation_is_recorded_with_its_reason_and_training_sti
     phase, evaluated, count, aggregate, failures = strategy.recorded[0]
     assert (phase, evaluated, count, failures) == ("evaluate", 2, 1, {2: reason})
     assert aggregate["action-mse"] == pytest.approx(2.0)
+
+
+def test_fednova_counts_every_clients_data_alike_whatever_steps_it_took():
+    """Two clients from a global model at 0, as a time budget leaves them: client 1 took 2 steps
+    (batch 8: 16 samples) to 2.0, client 2 took 6 (48 samples) to -3.0. FedNova: per step +1.0 and
+    -0.5, weights 8/8 per step (one half each), mean steps 4: 0 + 4 * (0.5 * 1.0 + 0.5 * -0.5) = 1.0.
+    Plain sample weighting: (16 * 2 - 48 * 3) / 64 = -1.75, pulled toward the client that took more
+    steps. With equal steps the two are the same average."""
+    replies = [reply(1, arrays(2.0, 4.0), examples=16, steps=2), reply(2, arrays(-3.0, 0.0), examples=48, steps=6)]
+    nova, _ = validating("fednova").aggregate_train(1, replies)
+    np.testing.assert_allclose(nova["a"].numpy(), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(nova["b"].numpy(), 4 * (0.5 * 4.0 / 2 + 0.5 * 0.0 / 6), rtol=1e-6)
+    scales = [next(iter(m.content.metric_records.values()))["step-scale"] for m in replies]
+    assert scales == pytest.approx([4 / 2, 4 / 6])
+
+    replies = [reply(1, arrays(2.0, 4.0), examples=16, steps=2), reply(2, arrays(-3.0, 0.0), examples=48, steps=6)]
+    samples, _ = validating("samples").aggregate_train(1, replies)
+    np.testing.assert_allclose(samples["a"].numpy(), (16 * 2.0 - 48 * 3.0) / 64, rtol=1e-6)
+
+    equal = lambda: [reply(1, arrays(2.0), examples=16, steps=2), reply(2, arrays(-3.0), examples=48, steps=2)]  # noqa: E731
+    same = [validating(averaging).aggregate_train(1, equal())[0]["a"].numpy() for averaging in ("fednova", "samples")]
+    np.testing.assert_array_equal(same[0], same[1])
+
+
+def test_with_fednova_a_client_that_took_more_steps_is_not_clipped_for_it():
+    """update-clip compares updates per step under FedNova: four times the steps and four times
+    the change is a typical update; four times the change in the same steps is not."""
+    replies = [reply(1, arrays(1.0), 8, steps=1), reply(2, arrays(1.1), 8, steps=1), reply(3, arrays(4.0), 32, steps=4)]
+    validating("fednova", update_clip=3.0).aggregate_train(1, replies)
+    assert [next(iter(m.content.metric_records.values()))["update-scale"] for m in replies] == [1.0, 1.0, 1.0]
+    replies = [reply(1, arrays(1.0), 8, steps=4), reply(2, arrays(1.1), 8, steps=4), reply(3, arrays(4.0), 32, steps=4)]
+    validating("fednova", update_clip=3.0).aggregate_train(1, replies)
+    clipped = next(iter(replies[2].content.metric_records.values()))["update-scale"]
+    assert clipped == pytest.approx(1.05 / 4.0, rel=1e-3)  # to the median of the others' sizes

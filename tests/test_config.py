@@ -70,6 +70,8 @@ def test_local_epochs_is_an_alias_of_local_steps():
         ({"personal-steps": -5}, ["'personal-steps'", "-5", ">= 0"]),
         ({"personal-lr": 2.0}, ["'personal-lr'", "2.0", "<= 1"]),
         ({"personal-mu": -0.1}, ["'personal-mu'", "-0.1", ">= 0"]),
+        ({"local-time-s": -30}, ["'local-time-s'", "-30.0", ">= 0"]),
+        ({"averaging": "fedbuff"}, ["'averaging'", "'fedbuff'", "['fednova', 'samples']"]),
     ],
 )
 def test_bad_values_fail_with_one_sentence(overrides, needles):

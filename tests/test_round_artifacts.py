@@ -33,6 +33,17 @@ def test_each_round_ends_with_a_line_a_person_reads(tmp_path, monkeypatch):
     )
 
 
+def test_with_a_time_budget_the_round_line_says_the_steps_the_clients_took(tmp_path, monkeypatch):
+    clock = iter([100.0, 130.0])
+    monkeypatch.setattr(round_artifacts, "time", SimpleNamespace(perf_counter=lambda: next(clock)))
+    history = History(tmp_path, {0: "a", 1: "b"}, {})
+    run = RunConfig(num_server_rounds=2, local_steps=75, local_time_s=60.0)
+    artifacts = RoundArtifacts(run, None, None, None, history, None, {}, first_round=1)
+    history.add_client(1, "train", 0, {"train-loss": 0.4, "local-steps": 75})
+    history.add_client(1, "train", 1, {"train-loss": 0.6, "local-steps": 18})
+    assert artifacts.progress(1).startswith("Round 1/2: 2 clients trained, 18-75 of 75 steps, train loss -, ")
+
+
 def server_artifacts(run: RunConfig, tmp_path, client_parts, registry) -> RoundArtifacts:
     """The server's writer for ``run`` on the first client's policy, writing under ``tmp_path``."""
     from zk0.tracking import Tracker

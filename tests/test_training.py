@@ -29,6 +29,18 @@ def test_twenty_update_policy_steps_lower_the_loss(client_parts):
     assert after < 0.9 * before, (before, after)
 
 
+def test_a_time_budget_ends_the_round_after_the_step_that_reaches_it(client_parts):
+    """``local-time-s``: at least one step however short the budget, at most ``local-steps``
+    however long, and the steps taken reported; the schedule moves on by the steps taken."""
+    bundle, split, trainer = client_parts
+    short = trainer.fit(steps=50, mu=0.0, global_step=0, budget_s=1e-9)
+    assert short["local-steps"] == 1 and short["num-examples"] == trainer.run.batch_size
+    assert trainer.scheduler.last_epoch == 1
+    long = trainer.fit(steps=3, mu=0.0, global_step=50, budget_s=3600.0)
+    assert long["local-steps"] == 3 and trainer.scheduler.last_epoch == 53
+    assert trainer.fit(steps=2, mu=0.0, global_step=53)["local-steps"] == 2  # no budget: every step
+
+
 def test_fedprox_gradient_is_mu_times_distance_to_global():
     weight = torch.nn.Parameter(torch.tensor([1.0, -2.0, 3.0]))
     prox = FedProx({"w": weight})

@@ -99,6 +99,12 @@ def scaled_update(update: ArrayRecord, current: dict[str, np.ndarray], scale: fl
     return ArrayRecord(moved)
 
 
+def steps_taken(msg: Message) -> int:
+    """The local steps a train reply's update took (``local-steps`` in its metrics)."""
+    (metrics,) = msg.content.metric_records.values()
+    return int(metrics["local-steps"])
+
+
 class ValidatingStrategy(Strategy):
     """A Flower strategy (``inner``) that rejects malformed updates, bounds outsized ones and
     records each client's reply; sampling, averaging and the server's step stay ``inner``'s."""
@@ -116,6 +122,7 @@ class ValidatingStrategy(Strategy):
         wire_dtype: str = "float32",
         proximal_mu: float = 0.0,
         update_clip: float = 0.0,
+        averaging: str = "fednova",
     ) -> None:
         self.inner = inner
         self.expected = expected
@@ -127,6 +134,7 @@ class ValidatingStrategy(Strategy):
         self.round_offset = round_offset  # rounds a resumed run already has: Flower counts from 1 again
         self.proximal_mu = proximal_mu
         self.update_clip = update_clip  # an update above this times the others' median norm is scaled to it; 0 = off
+        self.averaging = averaging  # updates of unequal steps: "fednova" (normalised by steps) or "samples"
         self.current: ArrayRecord | None = None  # the global model this round's updates start from
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
@@ -252,35 +260,79 @@ class ValidatingStrategy(Strategy):
             self.observer.record_clients("train", server_round, [m.content for m in valid], None, {})
             return None, None
         self.bound_updates(server_round, valid)
+        if self.averaging == "fednova":
+            self.normalise_steps(server_round, valid)
         arrays, metrics = self.inner.aggregate_train(server_round, valid)
         self.observer.record_clients("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
 
     def bound_updates(self, server_round: int, valid: list[Message]) -> None:
-        """Scale every update whose size (L2 norm of its change to the global model) is above
-        ``update-clip`` times the median of the other updates' sizes down to that median, naming
-        the client: past the clip an update is not trusted, so it counts as a typical one, no more.
-        Each reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1: untouched)."""
+        """Scale every update whose size (L2 norm of its change to the global model; with FedNova's
+        averaging, per local step) is above ``update-clip`` times the median of the other updates'
+        sizes down to that median, naming the client: past the clip an update is not trusted, so it
+        counts as a typical one, no more (a client that took four times the steps is not an outlier
+        for that). Each reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1:
+        untouched)."""
         key = self.inner.arrayrecord_key
         current = {name: array.numpy() for name, array in self.current.items()}  # decoded once, not per client
         norms = [update_norm(msg.content[key], current) for msg in valid]
+        per_step = self.averaging == "fednova"
+        sizes = [n / steps_taken(msg) if per_step else n for n, msg in zip(norms, valid, strict=True)]
         for i, msg in enumerate(valid):
-            typical = statistics.median(norms[:i] + norms[i + 1 :]) if len(norms) > 1 else 0.0
-            scale = typical / norms[i] if self.update_clip and 0 < typical * self.update_clip < norms[i] else 1.0
+            typical = statistics.median(sizes[:i] + sizes[i + 1 :]) if len(sizes) > 1 else 0.0
+            scale = typical / sizes[i] if self.update_clip and 0 < typical * self.update_clip < sizes[i] else 1.0
             if scale < 1:
                 msg.content[key] = scaled_update(msg.content[key], current, scale)
                 logger.warning(
-                    "Round {}: {}'s update is {:.3g}x the median of the others' ({:.4g} against {:.4g}), above "
+                    "Round {}: {}'s update is {:.3g}x the median of the others' ({:.4g} against {:.4g}{}), above "
                     "update-clip={:g}; scaled down to that median.",
                     server_round,
                     self._who(msg),
-                    norms[i] / typical,
-                    norms[i],
+                    sizes[i] / typical,
+                    sizes[i],
                     typical,
+                    " a step" if per_step else "",
                     self.update_clip,
                 )
             (metrics,) = msg.content.metric_records.values()
             metrics["update-norm"], metrics["update-scale"] = norms[i], scale
+
+    def normalise_steps(self, server_round: int, valid: list[Message]) -> None:
+        """FedNova's normalised averaging (Wang et al. 2020) when the clients took different steps.
+
+        Averaging raw updates weights each client by the steps it took as well as by its samples,
+        so with a time budget the fastest machines' data pull the model toward themselves. FedNova
+        divides each update by its steps τ_k, averages those with the clients' sample weights p_k
+        (the samples a client trains per step: what its weight is when everyone takes every step),
+        and scales the average by τ_eff = Σ p_k τ_k: every client's data count as much as with
+        equal work. The result replaces every reply's arrays, so the wrapped strategy's weighted
+        average is it whatever the weights, and the server optimiser steps from it as before.
+        Each reply's metrics get the ``step-scale`` τ_eff / τ_k its update was given."""
+        steps = [steps_taken(msg) for msg in valid]
+        if len(set(steps)) < 2:
+            return  # equal work: the plain weighted average is FedNova's
+        key = self.inner.arrayrecord_key
+        metrics = [next(iter(msg.content.metric_records.values())) for msg in valid]
+        weights = np.array([float(m[self.inner.weighted_by_key]) / tau for m, tau in zip(metrics, steps, strict=True)])
+        weights /= weights.sum()
+        tau_eff = float(np.dot(weights, steps))
+        scales = [tau_eff / tau for tau in steps]
+        current = {name: array.numpy() for name, array in self.current.items()}
+        averaged = {name: np.zeros_like(start) for name, start in current.items()}
+        for msg, weight, scale in zip(valid, weights, scales, strict=True):
+            for name, start in current.items():
+                averaged[name] += weight * scale * (msg.content[key][name].numpy() - start)
+        normalised = ArrayRecord({name: Array(current[name] + change) for name, change in averaged.items()})
+        for msg, m, scale in zip(valid, metrics, scales, strict=True):
+            msg.content[key] = normalised
+            m["step-scale"] = scale
+        logger.info(
+            "Round {}: the clients took {}-{} local steps; averaged with FedNova (mean steps {:.1f}).",
+            server_round,
+            min(steps),
+            max(steps),
+            tau_eff,
+        )
 
     def _who(self, msg: Message) -> str:
         """``client 2 (synth-so100-stacking)``, or the node id of a reply that does not say."""

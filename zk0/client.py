@@ -217,7 +217,8 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     server_round = int(config["server-round"])
     run = session.run
     evaluation = _evaluate_before_training(session, content, context) if int(config.get(EVALUATE_ROUND, 0)) else None
-    metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), (server_round - 1) * run.local_steps)
+    first_step = (server_round - 1) * run.local_steps  # the round's place on the schedule, whatever it takes
+    metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), first_step, run.local_time_s)
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
     if keep_optimizer:
         context.state[OPTIMIZER] = session.trainer.optimizer_record()

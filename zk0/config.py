@@ -28,6 +28,7 @@ LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.a
 # rather than adapted (PEFT's modules_to_save; docs/learning.md measured why).
 LORA_FULL_MODULES = "state_proj,action_in_proj,action_out_proj,action_time_mlp_in,action_time_mlp_out"
 SERVER_OPTIMISERS = ("fedavg", "fedavgm", "nesterov", "fedadam", "fedyogi")  # zk0.server_optimisers
+AVERAGINGS = ("fednova", "samples")  # how updates of unequal work are averaged (zk0.aggregation)
 
 
 class ConfigError(Zk0Error):
@@ -40,6 +41,8 @@ class RunConfig:
 
     num_server_rounds: int = 1
     local_steps: int = 2
+    local_time_s: float = 0.0  # a client trains at most this long a round (at least one step); 0 = every local step
+    averaging: str = "fednova"  # updates of clients that took different steps: fednova (normalised) or samples
     local_epochs: int = 0  # deprecated alias of local_steps, 0 = unset
     batch_size: int = 8
     lr: float = 1e-4
@@ -119,6 +122,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "batch_size": (1, None, False),
     "lr": (0, 1, True),
     "proximal_mu": (0, None, False),
+    "local_time_s": (0, None, False),
     "server_lr": (0, None, False),
     "server_momentum": (0, 0.99, False),
     "fraction_train": (0, 1, True),
@@ -220,6 +224,8 @@ def _check_server_optimiser(cfg: RunConfig) -> None:
             f"Run-config key 'server-lr' got {cfg.server_lr!r}, and server-optimiser='fedavg' takes the average as "
             "it is; expected 0 (or 1), or server-optimiser='fedavgm' with server-momentum=0 for a scaled step."
         )
+    if cfg.averaging not in AVERAGINGS:
+        raise ConfigError(f"Run-config key 'averaging' got {cfg.averaging!r}; expected one of {list(AVERAGINGS)}.")
     if 0 < cfg.update_clip < 1 or cfg.update_clip < 0:
         raise ConfigError(
             f"Run-config key 'update-clip' got {cfg.update_clip!r}; expected 0 (off) or a factor >= 1 "

@@ -295,15 +295,25 @@ class RoundArtifacts:
         now = time.perf_counter()
         per_round, self.last_end = now - self.last_end, now
         left = round(per_round * (self.run.num_server_rounds - server_round))
+        steps = [
+            int(c["train"]["local-steps"]) for c in record["clients"].values() if "local-steps" in c.get("train", {})
+        ]
         return (
             f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
             + (f"{refused} refused, " if refused else "")
+            + (f"{steps_text(steps, self.run.local_steps)}, " if self.run.local_time_s and steps else "")
             + f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
             + (f"success {success_text(server)} in the simulator, " if "success-rate" in server else "")
             + f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
             + (f", best round {self.best['round']}" if self.best else "")
         )
+
+
+def steps_text(steps: list[int], planned: int) -> str:
+    """``12-75 of 75 steps``: what a time budget let the round's clients take."""
+    low, high = min(steps), max(steps)
+    return f"{low if low == high else f'{low}-{high}'} of {planned} steps"
 
 
 def rank(best: dict) -> tuple[float, float]:

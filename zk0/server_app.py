@@ -210,6 +210,7 @@ def main(grid: Grid, context: Context) -> None:
         wire_dtype=run.wire_dtype,
         proximal_mu=run.proximal_mu,
         update_clip=run.update_clip,
+        averaging=run.averaging,
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own
     # machine, never at a path of the server's) and what both ends must share.

@@ -204,8 +204,13 @@ class LocalTrainer:
         full = self.optimizer.state_dict()
         self.optimizer.load_state_dict({**full, "state": state})
 
-    def fit(self, steps: int, mu: float, global_step: int) -> dict[str, float]:
+    def fit(self, steps: int, mu: float, global_step: int, budget_s: float = 0.0) -> dict[str, float]:
         """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics.
+
+        With ``budget_s`` (``local-time-s``) it stops after the step that reaches that many seconds
+        (at least one step): a slower machine takes fewer steps, reported as ``local-steps``. The
+        schedule stays on the round's grid (``global_step`` is the round's first planned step), so
+        every client of a round trains at the same learning rate whatever it took before.
 
         The random numbers (SmolVLA's flow-matching noise and time) are seeded by the run's seed,
         the dataset and ``global_step``: a round trains the same whichever process runs it, so a
@@ -220,7 +225,7 @@ class LocalTrainer:
         started = time.perf_counter()
         if self.bundle.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats()
-        while done < steps:
+        while done < steps and not (budget_s and done and time.perf_counter() - started >= budget_s):
             t0 = time.perf_counter()
             try:
                 batch = self._next_batch()
@@ -251,8 +256,9 @@ class LocalTrainer:
             "grad-norm": tracker.grad_norm.avg,
             "lr": self.optimizer.param_groups[0]["lr"],
             "num-examples": samples,
+            "local-steps": done,
             "skipped-batches": skipped,
-            "step-time": elapsed / steps,
+            "step-time": elapsed / done,
             **peak_memory(self.bundle.device),
         }
 
