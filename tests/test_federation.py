@@ -93,7 +93,9 @@ def test_two_clients_three_rounds_write_every_artifact(three_rounds):
         personal = client_dir / "models" / "personal"
         assert json.loads((personal / "zk0_round.json").read_text())["round"] == 3
         assert SmolVLAPolicy.from_pretrained(personal).config.chunk_size == 10
-        said = f"client {index} {client['evaluate']['action-mse']:.4g} -> {client['evaluate']['personal-action-mse']:.4g}"
+        said = (
+            f"client {index} {client['evaluate']['action-mse']:.4g} -> {client['evaluate']['personal-action-mse']:.4g}"
+        )
         assert said in log.split("Personal models after round 3 (held-out action MSE, global -> personal): ")[-1]
     report = (run / "report.html").read_text()
     assert 'id="personal"' in report and "--policy.path=clients/client_&lt;i&gt;/models/personal" in report
@@ -268,6 +270,31 @@ def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_k
     mse = [r["server-evaluate"]["action-mse"] for r in rounds if "server-evaluate" in r]
     assert len(mse) == 2, "the start and the end are evaluated"
     assert mse[-1] < 0.8 * mse[0], f"it learns as test_bf16_exchange_learns_like_fp32's run does: {mse}"
+
+
+def test_a_time_budget_and_a_deadline_name_who_was_cut_short_and_who_was_late(flower_env, tmp_path):
+    """``local-time-s`` far below one step: every client takes its one step and says so. A
+    ``round-deadline-s`` far below a round's work: round 1 (which builds the clients) waits for
+    them; in every later round their updates are dropped, each round names them, the global
+    model is kept, and the third round in a row warns that their owners' work is not counted."""
+    out = tmp_path / "outputs"
+    config = "num-server-rounds=4 local-steps=5 local-time-s=1e-6 round-deadline-s=0.01 eval-frequency=4"
+    log = flwr_run(flower_env, f"{config} checkpoint-interval=4 output-dir='{out}'", ONE_ACTOR)
+    runs = list(out.iterdir()) if out.exists() else []
+    assert len(runs) == 1, log[-3000:]
+    rounds = json.loads((runs[0] / "server" / "metrics_history.json").read_text())["rounds"]
+    first = rounds[1]["clients"]
+    assert [(c["train"]["local-steps"], c["train"]["num-examples"]) for c in first.values()] == [(1, 8), (1, 8)]
+    assert "late" not in rounds[1]
+    assert "Round 1/4: 2 clients trained, 1 of 5 steps, stragglers: client 0 (1 step), client 1 (1 step), " in log
+    for record in rounds[2:5]:
+        assert record["late"] == {"clients": [0, 1], "nodes": []}, record
+    assert "Round 2/4: 0 clients trained, stragglers: client 0 (late), client 1 (late), " in log
+    server_log = (runs[0] / "server" / "server.log").read_text()
+    warning = "Client 0 (synth-so100-pickplace) has sent no update within round-deadline-s=0.01 in each of the last 3"
+    assert server_log.count(warning) == 1, server_log[-3000:]
+    report = (runs[0] / "report.html").read_text()
+    assert "late (not counted)" in report and "client 0, client 1" in report
 
 
 def test_flwr_stop_ends_the_run_at_once(flower_env, tmp_path):

@@ -41,7 +41,9 @@ def test_with_a_time_budget_the_round_line_says_the_steps_the_clients_took(tmp_p
     artifacts = RoundArtifacts(run, None, None, None, history, None, {}, first_round=1)
     history.add_client(1, "train", 0, {"train-loss": 0.4, "local-steps": 75})
     history.add_client(1, "train", 1, {"train-loss": 0.6, "local-steps": 18})
-    assert artifacts.progress(1).startswith("Round 1/2: 2 clients trained, 18-75 of 75 steps, train loss -, ")
+    assert artifacts.progress(1).startswith(
+        "Round 1/2: 2 clients trained, 18-75 of 75 steps, stragglers: client 1 (18 steps), train loss -, "
+    )
 
 
 def server_artifacts(run: RunConfig, tmp_path, client_parts, registry) -> RoundArtifacts:

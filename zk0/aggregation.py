@@ -49,6 +49,10 @@ class RoundObserver(Protocol):
     ) -> None:
         """A phase's replies that counted, their weighted aggregate, failed clients' reasons by index."""
 
+    def record_late(self, server_round: int, clients: list[int], nodes: list[int]) -> None:
+        """Sampled clients (by dataset index; ``nodes``: ids of nodes that never replied yet) whose
+        train reply did not arrive within the round's deadline: their updates were not counted."""
+
     def round_ended(
         self,
         server_round: int,
@@ -202,6 +206,14 @@ class ValidatingStrategy(Strategy):
                 "Round {}: no usable update from node {} ({}); aggregating the others.", server_round, node, who
             )
 
+    def _record_late(self, server_round: int, replies: list[Message]) -> None:
+        """The sampled nodes that sent no reply at all (a failed one sends its error): past the
+        round's deadline (or the phase timeout), their update is dropped; the observer names them."""
+        late = sorted(self.sampled - {msg.metadata.src_node_id for msg in replies})
+        if late:
+            clients = sorted(self.node_clients[n] for n in late if n in self.node_clients)
+            self.observer.record_late(server_round, clients, [n for n in late if n not in self.node_clients])
+
     def valid_updates(self, server_round: int, replies: Iterable[Message]) -> list[Message]:
         """Replies that may be averaged; every other one is logged with its reason."""
         valid = []
@@ -242,8 +254,10 @@ class ValidatingStrategy(Strategy):
         self, server_round: int, replies: Iterable[Message]
     ) -> tuple[ArrayRecord | None, MetricRecord | None]:
         server_round += self.round_offset
-        valid = self.valid_updates(server_round, list(replies))
+        replies = list(replies)
+        valid = self.valid_updates(server_round, replies)
         self._log_missing(server_round, valid)
+        self._record_late(server_round, replies)
         self._record_evaluation(server_round - 1, valid)
         if len(valid) < self.inner.min_train_nodes and server_round == self.round_offset + 1:
             raise RunCannotTrain(

@@ -121,6 +121,8 @@ ROUND_COLUMNS = [
     ("round", "round"),
     ("trained", "clients trained"),
     ("refused", "refused"),
+    ("steps", "local steps taken"),
+    ("late", "late (not counted)"),
     ("train-loss", "train loss"),
     ("client-mse", "clients' action MSE"),
     ("policy-loss", "server policy loss"),
@@ -159,6 +161,8 @@ def round_row(record: dict) -> dict:
         "round": record["round"],
         "trained": clients_trained(record),
         "refused": sum("error" in c.get(phase, {}) for c in clients for phase in ("train", "evaluate")),
+        "steps": steps_cell([int(c["train"]["local-steps"]) for c in clients if "local-steps" in c.get("train", {})]),
+        "late": late_cell(record.get("late")),
         "train-loss": record.get("aggregate-train", {}).get("train-loss"),
         "client-mse": record.get("aggregate-evaluate", {}).get("action-mse"),
         "policy-loss": server.get("policy-loss"),
@@ -167,6 +171,22 @@ def round_row(record: dict) -> dict:
         "wall-s": record.get("wall-s"),
     }
     return {"round": record["round"], "cells": values}
+
+
+def steps_cell(steps: list[int]) -> tuple[int, str] | None:
+    """The fewest and most local steps a round's clients took (a time budget makes them differ)."""
+    if not steps:
+        return None
+    low, high = min(steps), max(steps)
+    return low, str(low) if low == high else f"{low}-{high}"
+
+
+def late_cell(late: dict | None) -> tuple[int, str] | None:
+    """The clients whose update missed the round's deadline."""
+    if not late:
+        return None
+    named = [f"client {i}" for i in late["clients"]] + [f"node {n}" for n in late["nodes"]]
+    return len(named), ", ".join(named)
 
 
 def client_rows(history: dict) -> list[dict]:

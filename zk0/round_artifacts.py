@@ -41,6 +41,8 @@ from zk0.stats import stats_from_record
 from zk0.tracking import Tracker
 from zk0.wire import CLIENT
 
+LATE_WARNING = 3  # rounds in a row a client misses the deadline before the server warns about it
+
 
 class RoundArtifacts:
     """Every file a run writes on the server, written as each round ends."""
@@ -91,6 +93,25 @@ class RoundArtifacts:
                 self.client_stats[index] = stats_from_record(content["stats"])
         if phase == "evaluate" and any("personal-action-mse" in content["metrics"] for content in replies):
             say(self.personal_line(server_round))
+
+    def record_late(self, server_round: int, clients: list[int], nodes: list[int]) -> None:
+        """The round's clients whose update missed the deadline (``late`` in its JSON); a client
+        late three rounds in a row is warned about: its owner's work is not being counted."""
+        self.history.add(server_round, "late", {"clients": clients, "nodes": nodes})
+        for index in clients:
+            rounds = 0
+            while index in self.history.rounds.get(server_round - rounds, {}).get("late", {}).get("clients", []):
+                rounds += 1
+            if rounds >= LATE_WARNING:
+                name = self.history.client_names.get(index, "?")
+                logger.warning(
+                    "Client {} ({}) has sent no update within round-deadline-s={:g} in each of the last {} rounds, so "
+                    "its owner's work is not counted; set local-time-s below the deadline or raise round-deadline-s.",
+                    index,
+                    name,
+                    self.run.round_deadline_s,
+                    rounds,
+                )
 
     def personal_line(self, server_round: int) -> str:
         """``Personal models after round 2 (...): client 0 235 -> 199, ...``: each owner's global and
@@ -295,13 +316,13 @@ class RoundArtifacts:
         now = time.perf_counter()
         per_round, self.last_end = now - self.last_end, now
         left = round(per_round * (self.run.num_server_rounds - server_round))
-        steps = [
-            int(c["train"]["local-steps"]) for c in record["clients"].values() if "local-steps" in c.get("train", {})
-        ]
+        train = {int(i): c["train"] for i, c in record["clients"].items() if "local-steps" in c.get("train", {})}
+        steps = {i: int(t["local-steps"]) for i, t in train.items()}
         return (
             f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
             + (f"{refused} refused, " if refused else "")
-            + (f"{steps_text(steps, self.run.local_steps)}, " if self.run.local_time_s and steps else "")
+            + (f"{steps_text(list(steps.values()), self.run.local_steps)}, " if self.run.local_time_s and steps else "")
+            + (f"{stragglers}, " if (stragglers := stragglers_text(record, steps, self.run)) else "")
             + f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
             + (f"success {success_text(server)} in the simulator, " if "success-rate" in server else "")
@@ -314,6 +335,17 @@ def steps_text(steps: list[int], planned: int) -> str:
     """``12-75 of 75 steps``: what a time budget let the round's clients take."""
     low, high = min(steps), max(steps)
     return f"{low if low == high else f'{low}-{high}'} of {planned} steps"
+
+
+def stragglers_text(record: dict, steps: dict[int, int], run: RunConfig) -> str:
+    """``stragglers: client 2 (18 steps), client 3 (late)``: who the time budget cut short, and
+    whose update missed the deadline."""
+    late = record.get("late", {})
+    cut = [(i, n) for i, n in sorted(steps.items()) if run.local_time_s and n < run.local_steps]
+    named = [f"client {i} ({n} step{'s' * (n != 1)})" for i, n in cut]
+    named += [f"client {i} (late)" for i in late.get("clients", [])]
+    named += [f"node {n} (late)" for n in late.get("nodes", [])]
+    return f"stragglers: {', '.join(named)}" if named else ""
 
 
 def rank(best: dict) -> tuple[float, float]:

@@ -224,7 +224,7 @@ def main(grid: Grid, context: Context) -> None:
     try:
         with stopping.watching():
             strategy.start(
-                grid=PromptGrid(grid),
+                grid=PromptGrid(grid, train_deadline_s=run.round_deadline_s),
                 initial_arrays=initial,
                 num_rounds=run.num_server_rounds - done,
                 train_config=ConfigRecord(dict(shared)),
