@@ -91,7 +91,15 @@ def test_a_supernode_refuses_a_temporary_folder_others_may_write_in(tmp_path):
     shared = tmp_path / f"zk0-{os.getuid()}"
     shared.mkdir()
     shared.chmod(0o777)
-    command = [tool("zk0"), "supernode", "--superlink", "127.0.0.1:1", "--insecure", "--dataset", "synth-so100-pickplace"]
+    command = [
+        tool("zk0"),
+        "supernode",
+        "--superlink",
+        "127.0.0.1:1",
+        "--insecure",
+        "--dataset",
+        "synth-so100-pickplace",
+    ]
     done = subprocess.run(
         [*command, "--dry-run"], capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path,
         env={**os.environ, "TMPDIR": str(tmp_path)},
@@ -144,6 +152,27 @@ def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federat
     federation.stop("plaintext")
     nodes = federation.flwr("supernode", "list", "--format", "json").stdout
     assert nodes.count('"online"') == 2, nodes
+
+
+def test_with_a_time_budget_a_throttled_owner_takes_fewer_steps_and_is_named(federation):
+    """robot-2's SuperNode held to a fifth of the CPU (zk0.bench.throttle): with local-time-s
+    each round lasts about the budget, robot-2 takes fewer steps than robot-1 and is named on the
+    console, and the server averages the two with FedNova's normalisation."""
+    from zk0.bench.throttle import Throttle
+
+    out = federation.root / "outputs-budget"
+    config = "num-server-rounds=3 local-steps=400 local-time-s=2 batch-size=4 eval-batches=1 eval-frequency=3"
+    with Throttle(federation.root / "robot-2", share=0.2):
+        done = federation.run_app(f"{config} output-dir='{out}'", timeout=600)
+    run_dir, record = history(out)
+    assert [r["round"] for r in record["rounds"]] == [0, 1, 2, 3], done.stdout[-3000:]
+    for r in (2, 3):  # round 1 also builds each client: its first steps are the slowest
+        steps = {int(i): c["train"]["local-steps"] for i, c in record["rounds"][r]["clients"].items()}
+        assert 1 <= steps[1] < steps[0] / 2 and steps[0] < 400, steps
+        line = f"Round {r}/3: 2 clients trained, {steps[1]}-{steps[0]} of 400 steps, stragglers: client 1 ({steps[1]} "
+        assert line in done.stdout, done.stdout[-3000:]
+    server_log = (run_dir / "server" / "server.log").read_text()
+    assert "local steps; averaged with FedNova" in server_log
 
 
 def test_a_supernode_killed_during_round_2_is_named_and_the_run_completes(federation):

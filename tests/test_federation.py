@@ -273,7 +273,8 @@ def test_one_client_sending_1000x_its_update_is_scaled_down_and_the_federation_k
 
 
 def test_a_time_budget_and_a_deadline_name_who_was_cut_short_and_who_was_late(flower_env, tmp_path):
-    """``local-time-s`` far below one step: every client takes its one step and says so. A
+    """``local-time-s`` far below one step: every client takes its one step and says so (no
+    straggler: none took less than half the fastest's steps). A
     ``round-deadline-s`` far below a round's work: round 1 (which builds the clients) waits for
     them; in every later round their updates are dropped, each round names them, the global
     model is kept, and the third round in a row warns that their owners' work is not counted."""
@@ -286,7 +287,7 @@ def test_a_time_budget_and_a_deadline_name_who_was_cut_short_and_who_was_late(fl
     first = rounds[1]["clients"]
     assert [(c["train"]["local-steps"], c["train"]["num-examples"]) for c in first.values()] == [(1, 8), (1, 8)]
     assert "late" not in rounds[1]
-    assert "Round 1/4: 2 clients trained, 1 of 5 steps, stragglers: client 0 (1 step), client 1 (1 step), " in log
+    assert "Round 1/4: 2 clients trained, 1 of 5 steps, train loss " in log  # alike: no one straggles
     for record in rounds[2:5]:
         assert record["late"] == {"clients": [0, 1], "nodes": []}, record
     assert "Round 2/4: 0 clients trained, stragglers: client 0 (late), client 1 (late), " in log

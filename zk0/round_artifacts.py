@@ -42,6 +42,7 @@ from zk0.tracking import Tracker
 from zk0.wire import CLIENT
 
 LATE_WARNING = 3  # rounds in a row a client misses the deadline before the server warns about it
+STRAGGLER = 0.5  # with a time budget, a client that took less than this share of the fastest one's steps
 
 
 class RoundArtifacts:
@@ -338,11 +339,12 @@ def steps_text(steps: list[int], planned: int) -> str:
 
 
 def stragglers_text(record: dict, steps: dict[int, int], run: RunConfig) -> str:
-    """``stragglers: client 2 (18 steps), client 3 (late)``: who the time budget cut short, and
-    whose update missed the deadline."""
+    """``stragglers: client 2 (18 steps), client 3 (late)``: the clients a time budget let take
+    less than half the steps of the round's fastest, and those whose update missed the deadline."""
     late = record.get("late", {})
-    cut = [(i, n) for i, n in sorted(steps.items()) if run.local_time_s and n < run.local_steps]
-    named = [f"client {i} ({n} step{'s' * (n != 1)})" for i, n in cut]
+    fastest = max(steps.values(), default=0)
+    slow = [(i, n) for i, n in sorted(steps.items()) if run.local_time_s and n < STRAGGLER * fastest]
+    named = [f"client {i} ({n} step{'s' * (n != 1)})" for i, n in slow]
     named += [f"client {i} (late)" for i in late.get("clients", [])]
     named += [f"node {n} (late)" for n in late.get("nodes", [])]
     return f"stragglers: {', '.join(named)}" if named else ""
