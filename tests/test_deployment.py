@@ -161,7 +161,8 @@ def test_with_a_time_budget_a_throttled_owner_takes_fewer_steps_and_is_named(fed
     from zk0.bench.throttle import Throttle
 
     out = federation.root / "outputs-budget"
-    config = "num-server-rounds=3 local-steps=400 local-time-s=2 batch-size=4 eval-batches=1 eval-frequency=3"
+    config = "num-server-rounds=3 local-steps=400 local-time-s=2 averaging='fednova' batch-size=4 eval-batches=1"
+    config += " eval-frequency=3"
     with Throttle(federation.root / "robot-2", share=0.2):
         done = federation.run_app(f"{config} output-dir='{out}'", timeout=600)
     run_dir, record = history(out)

@@ -126,7 +126,7 @@ class ValidatingStrategy(Strategy):
         wire_dtype: str = "float32",
         proximal_mu: float = 0.0,
         update_clip: float = 0.0,
-        averaging: str = "fednova",
+        averaging: str = "samples",
     ) -> None:
         self.inner = inner
         self.expected = expected

@@ -42,7 +42,7 @@ class RunConfig:
     num_server_rounds: int = 1
     local_steps: int = 2
     local_time_s: float = 0.0  # a client trains at most this long a round (at least one step); 0 = every local step
-    averaging: str = "fednova"  # updates of clients that took different steps: fednova (normalised) or samples
+    averaging: str = "samples"  # updates of clients that took different steps: samples (weighted) or fednova
     local_epochs: int = 0  # deprecated alias of local_steps, 0 = unset
     batch_size: int = 8
     lr: float = 1e-4

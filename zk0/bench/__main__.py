@@ -9,6 +9,7 @@ from zk0.bench import (
     deployment,
     exchange,
     gpu,
+    hetero,
     inputs,
     learning,
     memory,
@@ -34,6 +35,7 @@ BENCHMARKS = {
     "sim": sim,
     "inputs": inputs,
     "sim-learning": sim_learning,
+    "hetero": hetero,
 }
 
 

@@ -1,0 +1,156 @@
+"""Hetero benchmark: owners with different hardware, fixed steps against a time budget.
+
+One loopback Deployment Engine federation (``zk0.loopback``: a TLS SuperLink and one
+``zk0 supernode`` per owner) in which the last owner's SuperNode is held to ``--share`` of the
+CPU for the whole benchmark (``zk0.bench.throttle``: SIGSTOP/SIGCONT duty-cycling, as cpulimit
+does). Three runs on it, one after another: every client taking ``--local-steps`` a round (today's
+default: each round waits for the slow owner), and ``local-time-s = --budget`` averaged with
+FedNova's normalisation and with plain sample weighting. For each: the wall time of every round
+after the first (which builds the clients), its ratio to the budget, the slow owner's step time
+against the others' (how slow the throttle made it, measured) and its share of the steps, and
+the server's action MSE per round, compared at equal wall time (counted from the end of round 1,
+which builds every client): each budget run's final model against the fixed-steps model of the
+last round that had ended by then.
+
+    python -m zk0.bench hetero [--clients 4] [--rounds 6] [--local-steps 100] [--budget 10]
+        [--share 0.25] [--batch-size 8] [--lr 2e-3] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+from zk0.bench.client import write_json
+from zk0.bench.throttle import Throttle
+from zk0.errors import OneSentenceParser, positive
+from zk0.loopback import loopback_federation
+from zk0.registry import load_registry
+
+RUNS = {  # label -> the run-config keys it adds (the budget's value comes from --budget)
+    "fixed steps": {},
+    "budget, FedNova": {"averaging": "fednova"},
+    "budget, samples": {"averaging": "samples"},
+}
+
+
+def run_config(args, keys: dict, out: Path) -> str:
+    """One run's keys: the same rounds, steps, batch and learning rate for all three."""
+    budget = f" local-time-s={args.budget}" if keys else ""
+    extra = "".join(f" {k}='{v}'" for k, v in keys.items())
+    return (
+        f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} lr={args.lr} "
+        f"eval-frequency=1 checkpoint-interval={args.rounds} min-train-clients={args.clients}{budget}{extra} "
+        f"output-dir='{out}'"
+    )
+
+
+def figures_of(history: dict, slow: int, budget: float | None) -> dict:
+    """A run's round walls, the slow owner's measured slowness and share of steps, MSE by wall time."""
+    rounds = history["rounds"]
+    walls = {r["round"]: r["wall-s"] for r in rounds}
+    steady = [walls[r] - walls[r - 1] for r in range(2, max(walls) + 1)]
+    trained = [
+        (int(i), c["train"]) for r in rounds[2:] for i, c in r["clients"].items() if "local-steps" in c.get("train", {})
+    ]
+    slow_steps = sum(t["local-steps"] for i, t in trained if i == slow)
+    step_time = {
+        who: statistics.mean(t["step-time"] for i, t in trained if (i == slow) == (who == "slow"))
+        for who in ("slow", "others")
+    }
+    return {
+        "steady-round-s": steady,
+        "mean-steady-round-s": statistics.mean(steady),
+        "round-vs-budget": statistics.mean(steady) / budget if budget else None,
+        "slow-owner-step-slowdown": step_time["slow"] / step_time["others"],
+        "slow-owner-share-of-steps": slow_steps / sum(t["local-steps"] for _, t in trained),
+        "steps-by-client": {
+            str(i): [c["train"].get("local-steps") for r in rounds[1:] if (c := r["clients"].get(str(i)))]
+            for i in sorted({i for i, _ in trained})
+        },  # fmt: skip
+        # from the end of round 1: that round builds every client, which takes as long whatever the budget
+        "mse-by-wall": [
+            (r["wall-s"] - walls[1], r["server-evaluate"]["action-mse"])
+            for r in rounds
+            if "server-evaluate" in r and r["round"] >= 1
+        ],
+        "wall-s": walls[max(walls)],
+    }
+
+
+def at_wall(mse_by_wall: list[tuple[float, float]], wall: float) -> tuple[float, float]:
+    """The model of the last round that had ended by ``wall`` seconds: (its wall time, its MSE)."""
+    return [point for point in mse_by_wall if point[0] <= wall][-1]
+
+
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
+    parser = OneSentenceParser(prog="python -m zk0.bench hetero", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--clients", type=positive(int), default=4)
+    parser.add_argument("--rounds", type=positive(int), default=6)
+    parser.add_argument("--local-steps", type=positive(int), default=100)
+    parser.add_argument("--budget", type=positive(float), default=10.0, help="local-time-s of the budget runs")
+    parser.add_argument("--share", type=positive(float), default=0.25, help="the slow owner's share of the CPU")
+    parser.add_argument("--batch-size", type=positive(int), default=8)
+    parser.add_argument("--lr", type=positive(float), default=2e-3)
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.rounds < 2:
+        parser.error(f"--rounds got {args.rounds}; expected 2 or more (round 1 builds every client)")
+    if args.share > 1:
+        parser.error(f"--share got {args.share}; expected a share of the CPU in (0, 1]")
+    clients = load_registry().clients[: args.clients]
+    if len(clients) < args.clients or args.clients < 2:
+        parser.error(f"--clients got {args.clients}; expected 2 to {len(load_registry().clients)}")
+    supernodes = {f"robot-{i}": entry.name for i, entry in enumerate(clients)}
+    slow = args.clients - 1
+    figures: dict = {"settings": vars(args), "slow-owner": f"client {slow} ({clients[slow].name})"}
+    with tempfile.TemporaryDirectory(prefix="zk0-bench-hetero-") as tmp:
+        root = Path(tmp)
+        with loopback_federation(root, supernodes) as fed, Throttle(root / f"robot-{slow}", args.share):
+            for label, keys in RUNS.items():
+                out = root / label.replace(", ", "-").replace(" ", "-")
+                done = fed.run_app(run_config(args, keys, out), timeout=3600)
+                found = sorted(out.glob("*/server/metrics_history.json"))
+                if not found or "Exit Code: " in done.stdout:
+                    print(done.stdout[-4000:] + done.stderr[-2000:], file=sys.stderr)
+                    print(f"bench.hetero: the {label!r} run did not finish; its log is above.", file=sys.stderr)
+                    return 1
+                history = json.loads(found[-1].read_text())
+                figures[label] = figures_of(history, slow, args.budget if keys else None)
+                print(f"  {label}: {figures[label]['wall-s']:.0f} s", flush=True)
+    report(figures, args)
+    write_json(args.json, figures)
+    return 0
+
+
+def report(figures: dict, args) -> None:
+    """The table, and each budget run against fixed steps at its own wall time."""
+    fixed = figures["fixed steps"]
+    print(f"\n{args.clients} owners, {figures['slow-owner']} held to {args.share:.0%} of the CPU; {args.rounds} rounds "
+          f"of {args.local_steps} steps or local-time-s={args.budget:g}, batch {args.batch_size}, lr {args.lr:g}")  # fmt: skip
+    print(f"{'':<16}{'round s':>9}{'x budget':>10}{'slow step':>11}{'slow share':>12}{'final MSE':>11}{'wall s':>8}")
+    for label in RUNS:
+        f = figures[label]
+        ratio = "-" if f["round-vs-budget"] is None else f"{f['round-vs-budget']:.2f}"
+        print(f"{label:<16}{f['mean-steady-round-s']:>9.1f}{ratio:>10}{f['slow-owner-step-slowdown']:>10.1f}x"
+              f"{f['slow-owner-share-of-steps']:>12.1%}{f['mse-by-wall'][-1][1]:>11.4g}{f['wall-s']:>8.0f}")  # fmt: skip
+    for label in list(RUNS)[1:]:
+        f = figures[label]
+        wall, mse = f["mse-by-wall"][-1]
+        then, fixed_mse = at_wall(fixed["mse-by-wall"], wall)
+        f["vs-fixed-at-equal-wall"] = mse / fixed_mse
+        print(f"{label} {wall:.0f} s after round 1: server action MSE {mse:.4g} against fixed steps' {fixed_mse:.4g} "
+              f"(its model at {then:.0f} s): {mse / fixed_mse:.2f}x")  # fmt: skip
+
+
+if __name__ == "__main__":
+    sys.exit(main())
