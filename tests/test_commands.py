@@ -84,6 +84,18 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         ),
         (
             bench,
+            ["study", "--seeds", "42", "42"],
+            "python -m zk0.bench study: --seeds got 42 42; expected different seeds, each 0 or more; "
+            "see python -m zk0.bench study --help.",
+        ),
+        (
+            bench,
+            ["hetero", "--share", "2"],
+            "python -m zk0.bench hetero: --share got 2.0; expected a share of the CPU in (0, 1]; "
+            "see python -m zk0.bench hetero --help.",
+        ),
+        (
+            bench,
             ["learning", "--peft", "lora", "--lora-lr", "fast"],
             "python -m zk0.bench learning: argument --lora-lr: got 'fast'; expected float > 0; "
             "see python -m zk0.bench learning --help.",

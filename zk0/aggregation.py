@@ -273,14 +273,15 @@ class ValidatingStrategy(Strategy):
             )
             self.observer.record_clients("train", server_round, [m.content for m in valid], None, {})
             return None, None
-        self.bound_updates(server_round, valid)
+        current = {name: array.numpy() for name, array in self.current.items()}  # decoded once, not per client
+        self.bound_updates(server_round, valid, current)
         if self.averaging == "fednova":
-            self.normalise_steps(server_round, valid)
+            self.normalise_steps(server_round, valid, current)
         arrays, metrics = self.inner.aggregate_train(server_round, valid)
         self.observer.record_clients("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
 
-    def bound_updates(self, server_round: int, valid: list[Message]) -> None:
+    def bound_updates(self, server_round: int, valid: list[Message], current: dict[str, np.ndarray]) -> None:
         """Scale every update whose size (L2 norm of its change to the global model; with FedNova's
         averaging, per local step) is above ``update-clip`` times the median of the other updates'
         sizes down to that median, naming the client: past the clip an update is not trusted, so it
@@ -288,7 +289,6 @@ class ValidatingStrategy(Strategy):
         for that). Each reply's metrics get its ``update-norm`` and the ``update-scale`` applied (1:
         untouched)."""
         key = self.inner.arrayrecord_key
-        current = {name: array.numpy() for name, array in self.current.items()}  # decoded once, not per client
         norms = [update_norm(msg.content[key], current) for msg in valid]
         per_step = self.averaging == "fednova"
         sizes = [n / steps_taken(msg) if per_step else n for n, msg in zip(norms, valid, strict=True)]
@@ -311,7 +311,7 @@ class ValidatingStrategy(Strategy):
             (metrics,) = msg.content.metric_records.values()
             metrics["update-norm"], metrics["update-scale"] = norms[i], scale
 
-    def normalise_steps(self, server_round: int, valid: list[Message]) -> None:
+    def normalise_steps(self, server_round: int, valid: list[Message], current: dict[str, np.ndarray]) -> None:
         """FedNova's normalised averaging (Wang et al. 2020) when the clients took different steps.
 
         Averaging raw updates weights each client by the steps it took as well as by its samples,
@@ -331,7 +331,6 @@ class ValidatingStrategy(Strategy):
         weights /= weights.sum()
         tau_eff = float(np.dot(weights, steps))
         scales = [tau_eff / tau for tau in steps]
-        current = {name: array.numpy() for name, array in self.current.items()}
         averaged = {name: np.zeros_like(start) for name, start in current.items()}
         for msg, weight, scale in zip(valid, weights, scales, strict=True):
             for name, start in current.items():

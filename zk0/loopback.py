@@ -10,6 +10,7 @@ SuperLink's address), and ``flwr run`` against it. The deployment test and
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import signal
@@ -82,6 +83,17 @@ class LoopbackFederation:
     def run_app(self, run_config: str, app: Path = PROJECT_ROOT, timeout: float = 1800) -> subprocess.CompletedProcess:
         """``flwr run <app> lan --stream`` with ``run_config``; returns when the run ends."""
         return self.flwr("run", str(app), CONNECTION, "--stream", "--run-config", run_config, timeout=timeout)
+
+    def run_history(self, run_config: str, out: Path, who: str, timeout: float = 1800) -> dict | None:
+        """``run_app`` with its outputs in ``out``: the run's metric history, or None after the end
+        of its log and one sentence naming ``who`` ran it."""
+        done = self.run_app(f"{run_config} output-dir='{out}'", timeout=timeout)
+        runs = sorted(out.glob("*/server/metrics_history.json"))
+        if not runs or "Exit Code: " in done.stdout:
+            print(done.stdout[-4000:] + done.stderr[-2000:], file=sys.stderr)
+            print(f"{who}: the deployment run did not finish; its log is above.", file=sys.stderr)
+            return None
+        return json.loads(runs[-1].read_text())
 
     def log(self, name: str) -> str:
         return (self.root / f"{name}.log").read_text()

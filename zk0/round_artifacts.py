@@ -317,8 +317,8 @@ class RoundArtifacts:
         now = time.perf_counter()
         per_round, self.last_end = now - self.last_end, now
         left = round(per_round * (self.run.num_server_rounds - server_round))
-        train = {int(i): c["train"] for i, c in record["clients"].items() if "local-steps" in c.get("train", {})}
-        steps = {i: int(t["local-steps"]) for i, t in train.items()}
+        replied = record["clients"].items()
+        steps = {int(i): int(c["train"]["local-steps"]) for i, c in replied if "local-steps" in c.get("train", {})}
         return (
             f"Round {server_round}/{self.run.num_server_rounds}: {trained} client{'s' * (trained != 1)} trained, "
             + (f"{refused} refused, " if refused else "")

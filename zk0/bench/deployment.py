@@ -21,7 +21,6 @@ the middle ones apart (the last round also writes the checkpoint and sends an ev
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -50,15 +49,8 @@ def deployment_history(args: argparse.Namespace, root: Path, cpus: int | None) -
     its metric history, or None (with the log) on failure."""
     datasets = [entry.name for entry in load_registry().clients[: args.clients]]
     supernodes = {f"robot-{i}": name for i, name in enumerate(datasets)}
-    out = root / "server-outputs"
     with loopback_federation(root, supernodes, cpus=cpus) as fed:
-        done = fed.run_app(f"{run_config(args)} output-dir='{out}'")
-    runs = sorted(out.glob("*/server/metrics_history.json"))
-    if not runs or "Exit Code: " in done.stdout:
-        print(done.stdout[-4000:] + done.stderr[-2000:], file=sys.stderr)
-        print("bench.deployment: the deployment run did not finish; its log is above.", file=sys.stderr)
-        return None
-    return json.loads(runs[-1].read_text())
+        return fed.run_history(run_config(args), root / "server-outputs", "bench.deployment")
 
 
 def round_walls(history: dict) -> list[float]:

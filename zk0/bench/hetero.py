@@ -18,7 +18,6 @@ last round that had ended by then.
 
 from __future__ import annotations
 
-import json
 import statistics
 import sys
 import tempfile
@@ -37,14 +36,13 @@ RUNS = {  # label -> the run-config keys it adds (the budget's value comes from 
 }
 
 
-def run_config(args, keys: dict, out: Path) -> str:
+def run_config(args, keys: dict) -> str:
     """One run's keys: the same rounds, steps, batch and learning rate for all three."""
     budget = f" local-time-s={args.budget}" if keys else ""
     extra = "".join(f" {k}='{v}'" for k, v in keys.items())
     return (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} lr={args.lr} "
-        f"eval-frequency=1 checkpoint-interval={args.rounds} min-train-clients={args.clients}{budget}{extra} "
-        f"output-dir='{out}'"
+        f"eval-frequency=1 checkpoint-interval={args.rounds} min-train-clients={args.clients}{budget}{extra}"
     )
 
 
@@ -118,13 +116,9 @@ def main(argv: list[str] | None = None) -> int:
         with loopback_federation(root, supernodes) as fed, Throttle(root / f"robot-{slow}", args.share):
             for label, keys in RUNS.items():
                 out = root / label.replace(", ", "-").replace(" ", "-")
-                done = fed.run_app(run_config(args, keys, out), timeout=3600)
-                found = sorted(out.glob("*/server/metrics_history.json"))
-                if not found or "Exit Code: " in done.stdout:
-                    print(done.stdout[-4000:] + done.stderr[-2000:], file=sys.stderr)
-                    print(f"bench.hetero: the {label!r} run did not finish; its log is above.", file=sys.stderr)
+                history = fed.run_history(run_config(args, keys), out, f"bench.hetero ({label})", timeout=3600)
+                if history is None:
                     return 1
-                history = json.loads(found[-1].read_text())
                 figures[label] = figures_of(history, slow, args.budget if keys else None)
                 print(f"  {label}: {figures[label]['wall-s']:.0f} s", flush=True)
     report(figures, args)

@@ -484,8 +484,7 @@ def print_over_seeds(setting: str, result: dict) -> None:
 
 def seed_cell(rates: dict) -> str:
     """``57 [52, 63] (49-64)``: the mean over seeds, its (Wilson) interval, the lowest and highest seed."""
-    return (f"{100 * rates['success-rate']:.0f} [{100 * rates['success-low']:.0f}, {100 * rates['success-high']:.0f}]"
-            f" ({100 * rates['seed-min']:.0f}-{100 * rates['seed-max']:.0f})")  # fmt: skip
+    return f"{rate_cell(rates)} ({100 * rates['seed-min']:.0f}-{100 * rates['seed-max']:.0f})"
 
 
 def figure_text(f: dict, points: bool = False, percent: bool = False) -> str:
