@@ -14,7 +14,10 @@ from zk0.assets import AssetError, ensure_backbone, ensure_dataset, synthetic_da
 from zk0.assets.datasets import COLOURS, JOINT_NAMES, NON_IID, SPECS, write_synthetic_dataset
 
 
-@pytest.mark.parametrize("name", sorted(name for name, spec in SPECS.items() if not spec.benchmark_only))
+@pytest.mark.parametrize(
+    "name",
+    [*sorted(name for name, spec in SPECS.items() if not spec.benchmark_only), "synth-owner-0", "synth-owner-63"],
+)
 def test_each_synthetic_dataset_opens_and_decodes_a_frame(name):
     spec = SPECS[name]
     root = ensure_dataset(name)
@@ -168,6 +171,23 @@ def test_each_noniid_client_sees_its_own_quarter_and_moves_at_its_own_rate(name)
     steps = (actions - states).reshape(spec.episodes, spec.frames_per_episode, -1)[:, :8]
     now, after = steps[:, :-1].reshape(-1), steps[:, 1:].reshape(-1)
     assert float(now @ after / (now @ now)) == pytest.approx(1 - spec.approach_rate, abs=0.02)
+
+
+def test_many_owners_differ_within_the_server_sets_span_and_each_is_a_function_of_its_name():
+    owners = [SPECS[f"synth-owner-{i}"] for i in range(64)]
+    server = SPECS["synth-so100-eval"]
+    X0, X1, Y0, Y1 = server.target_region
+    for spec in owners:
+        x0, x1, y0, y1 = spec.target_region
+        assert X0 <= x0 < x1 <= X1 and Y0 <= y0 < y1 <= Y1, spec.name
+        assert set(spec.colours) <= set(server.colours) and 2 <= len(spec.colours) <= 3
+        assert spec.episodes >= 5 and 0.1 <= spec.approach_rate <= 0.3
+    assert len({s.target_region for s in owners}) == 64 and len({s.approach_rate for s in owners}) == 64
+    assert len({(s.robot_type, s.task_template, s.cameras) for s in owners}) == 4  # the four hand-written owners'
+    assert SPECS["synth-owner-5"] == SPECS["synth-owner-5"] and SPECS["synth-owner-5"] != SPECS["synth-owner-6"]
+    for name in ("synth-owner-07", "synth-owner-1000", "synth-owner-", "synth-owner-x"):
+        assert name not in SPECS
+    assert "synth-owner-7" not in list(SPECS)  # `zk0 assets` makes the hand-written ones by default
 
 
 def test_noniid_quarters_are_disjoint_and_the_rates_average_to_the_server_sets():

@@ -64,6 +64,18 @@ def test_fewer_cameras_use_smolvla_empty_camera_slots(registry):
         ('[tool.zk0.datasets.a]\ncameras = { top = "camera1" }\n', "'a' is invalid"),
         ('[tool.zk0.datasets.b]\nrepo_id = "x/b"\nsynthetic = true\ncameras = { top = "camera1" }\n', "synthetic"),
         ("[tool.other]\n", "no [tool.zk0.datasets]"),
+        ("[tool.zk0.owners]\ncount = 0\n", "count = 0; expected a whole number from 1 to 1000"),
+        ("[tool.zk0.owners]\ncount = 2.5\n", "count = 2.5"),
+        (
+            '[tool.zk0.owners]\ncount = 4\nkind = "robots"\n',
+            "kind = 'robots'; expected one of ['synth', 'sim', 'sim-cube']",
+        ),
+        ("[tool.zk0.owners]\ncount = 4\nseed = 1\n", "unknown key 'seed'"),
+        ("[tool.zk0]\nowners = 16\n", "[tool.zk0.owners] must be a table"),
+        (
+            '[tool.zk0.owners]\ncount = 2\n[tool.zk0.datasets.synth-owner-1]\nrepo_id = "x/b"\ncameras = { top = "camera1" }\n',
+            "'synth-owner-1' is also one of [tool.zk0.owners]",
+        ),
     ],
 )
 def test_bad_registry_files_fail_with_one_sentence(tmp_path, table, needle):
@@ -72,6 +84,41 @@ def test_bad_registry_files_fail_with_one_sentence(tmp_path, table, needle):
     with pytest.raises(RegistryError) as err:
         load_registry(path)
     assert needle in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("kind", "client", "server"),
+    [
+        ("synth", "synth-owner-{}", "synth-so100-eval"),
+        ("sim", "sim-so101-owner-{}", "sim-so101-eval"),
+        ("sim-cube", "sim-so101-owner-{}-cube", "sim-so101-eval-cube"),
+    ],
+)
+def test_one_table_makes_many_owners_and_their_server_set(tmp_path, kind, client, server):
+    path = tmp_path / "owners.toml"
+    path.write_text(f'[tool.zk0.owners]\ncount = 64\nkind = "{kind}"\n')
+    registry = load_registry(path)
+    assert [e.name for e in registry.clients] == [client.format(i) for i in range(64)]
+    assert [e.name for e in registry.entries if e.role == "server"] == [server]
+    assert registry.model_cameras() == ["observation.images.camera1", "observation.images.camera2"]
+    assert all(e.synthetic and sorted(e.cameras.values()) == ["camera1", "camera2"] for e in registry.entries)
+    assert registry.for_partition(63).name == client.format(63)
+
+
+def test_the_owners_table_keeps_the_files_own_entries_and_server(tmp_path):
+    path = tmp_path / "owners.toml"
+    path.write_text(
+        "[tool.zk0.owners]\ncount = 2\n"
+        '[tool.zk0.datasets.mine]\nrepo_id = "me/mine"\nroot = "/data/mine"\ncameras = { top = "camera1" }\n'
+        '[tool.zk0.datasets.judge]\nrepo_id = "me/judge"\nrole = "server"\ncameras = { top = "camera1" }\n'
+    )
+    registry = load_registry(path)
+    assert [e.name for e in registry.entries] == ["synth-owner-0", "synth-owner-1", "mine", "judge"]
+
+
+def test_the_shipped_owners_registry_has_sixteen_owners():
+    registry = load_registry("configs/owners-registry.toml")
+    assert len(registry.clients) == 16 and registry.get("synth-so100-eval").role == "server"
 
 
 def test_lookups_name_the_bad_value(registry):

@@ -9,6 +9,7 @@ import os
 import re
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from zk0.registry import load_registry
 from zk0.sim.env import APART_M, HOLD_STEPS, JOINTS, PickCubeEnv, to_lerobot, to_mujoco
 from zk0.sim.expert import PickExpert
 from zk0.sim.record import demonstrate, episode_seed
-from zk0.sim.tasks import SIM_SPECS, SimTask
+from zk0.sim.tasks import SERVER_TASK, SIM_SPECS, SimTask
 
 REGISTRY = "configs/sim-registry.toml"
 CUBE_REGISTRY = "configs/sim-cube-registry.toml"
@@ -57,7 +58,9 @@ def test_state_and_action_are_lerobots_so101_features_in_its_units(env):
     assert observation["agent_pos"][:5] == pytest.approx(target[:5], abs=2.0)
 
 
-@pytest.mark.parametrize("conditions", [name for name in SIM_SPECS if not name.endswith("-cube")])
+@pytest.mark.parametrize(
+    "conditions", [*(name for name in SIM_SPECS if not name.endswith("-cube")), "sim-so101-owner-0"]
+)
 def test_the_cubes_start_apart_after_every_reset(conditions):
     """In every set-up, on 30 seeded resets, the two cubes rest more than 6 cm apart (centre to
     centre) once settled. The distractor was once checked against a cube position MuJoCo had not
@@ -195,6 +198,19 @@ def test_cube_in_state_demonstrations_record_eight_values_train_and_stay_out_of_
     client = build_client(run, entry, cameras, shapes={"observation.state": (8,), "action": (6,)})
     metrics = client.trainer.fit(steps=2, mu=0.0, global_step=0)
     assert metrics["num-examples"] == 4 and np.isfinite(metrics["train-loss"])
+
+
+def test_many_simulated_owners_are_parts_of_the_servers_span():
+    X0, X1, Y0, Y1 = SERVER_TASK.region
+    owners = [SIM_SPECS[f"sim-so101-owner-{i}"] for i in range(64)]
+    for spec in owners:
+        x0, x1, y0, y1 = spec.task.region
+        assert X0 <= x0 < x1 <= X1 and Y0 <= y0 < y1 <= Y1 and (x1 - x0, y1 - y0) == pytest.approx((0.06, 0.12))
+        assert len(set(spec.task.colours)) == 2 and set(spec.task.colours) <= set(SERVER_TASK.colours)
+        assert 0.12 <= spec.speed <= 0.2 and spec.role == "client"
+        twin = SIM_SPECS[f"{spec.name}-cube"]
+        assert twin.task.cube_in_state and replace(twin.task, cube_in_state=False) == spec.task
+    assert len({s.task.look for s in owners}) == 64 and len({s.task.region for s in owners}) == 64
 
 
 def test_sim_evaluation_needs_a_simulated_server_set():

@@ -41,9 +41,9 @@ def _assets(args: argparse.Namespace) -> int:
         wanted = [OFFLINE_BACKBONES[run.model]] if run.model in OFFLINE_BACKBONES else []
         wanted += [e.name for e in load_registry(run.registry).entries if e.synthetic]
         names += [name for name in wanted if name not in names]
-    known = [*BACKBONES, *SPECS, *SIM_SPECS]
     for name in names:
-        if name not in known:
+        if name not in BACKBONES and name not in SPECS and name not in SIM_SPECS:
+            known = [*BACKBONES, *SPECS.described(), *SIM_SPECS.described()]
             raise AssetError(f"Unknown asset {name!r}; expected one of {known}.")
     paths = {}
     # One bar of zk0's own (shown once generating takes over a second); what the libraries print
@@ -186,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     assets.add_argument("--seed", type=int, default=0, help="generator seed (default 0, what runs use)")
     assets.add_argument("--episodes", type=int, help="episodes per dataset (default: each dataset's own)")
     assets.add_argument(
-        "--only", nargs="+", metavar="NAME", help=f"only these assets: {' '.join([*BACKBONES, *SPECS, *SIM_SPECS])}"
+        "--only", nargs="+", metavar="NAME", help=f"only these assets: {' '.join([*BACKBONES, *SPECS.described(), *SIM_SPECS.described()])}"
     )
     assets.add_argument(
         "--run-config", action="append", default=[], help="also every generated dataset this run's registry names"

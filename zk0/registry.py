@@ -4,6 +4,12 @@ Entries live as ``[tool.zk0.datasets.<name>]`` tables in ``pyproject.toml`` (or 
 TOML file named by the ``registry`` run-config key) and are decoded with draccus into
 typed ``DatasetEntry`` objects, read and validated once. A simulation client takes the
 Nth client entry for partition id N; a SuperNode can name its entry in its node config.
+
+A federation of many owners is one table, ``[tool.zk0.owners]`` (``count = 64``, ``kind =
+"synth"``, ``"sim"`` or ``"sim-cube"``): owners ``<kind>-owner-0`` to ``-63``, each with its own
+conditions drawn from a seeded distribution (zk0.assets.datasets.synth_owner,
+zk0.sim.tasks.sim_owner), listed before the file's own tables, and the kind's server
+evaluation set unless the file names a server dataset itself.
 """
 
 from __future__ import annotations
@@ -16,11 +22,18 @@ import draccus
 
 from zk0.assets import generated_dataset
 from zk0.assets.datasets import SPECS
+from zk0.catalogue import MAX_OWNERS
 from zk0.errors import Zk0Error
 from zk0.sim.tasks import SIM_SPECS
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 ROLES = ("client", "server")
+# [tool.zk0.owners] kind -> (an owner's dataset name, the server's evaluation set)
+OWNER_KINDS = {
+    "synth": ("synth-owner-{}", "synth-so100-eval"),
+    "sim": ("sim-so101-owner-{}", "sim-so101-eval"),
+    "sim-cube": ("sim-so101-owner-{}-cube", "sim-so101-eval-cube"),
+}
 
 
 class RegistryError(Zk0Error):
@@ -106,12 +119,49 @@ def load_registry(path: str | Path = "") -> Registry:
     if not file.is_absolute():
         file = PROJECT_ROOT / file
     try:
-        tables = tomllib.loads(file.read_text()).get("tool", {}).get("zk0", {}).get("datasets", {})
+        zk0 = tomllib.loads(file.read_text()).get("tool", {}).get("zk0", {})
     except OSError as err:
         raise RegistryError(f"Registry file {str(file)!r} cannot be read ({err.strerror}).") from None
-    if not tables:
-        raise RegistryError(f"Registry file {str(file)!r} has no [tool.zk0.datasets] tables.")
-    return Registry([_decode(name, raw) for name, raw in tables.items()])
+    tables = zk0.get("datasets", {})
+    if not tables and "owners" not in zk0:
+        raise RegistryError(f"Registry file {str(file)!r} has no [tool.zk0.datasets] tables and no [tool.zk0.owners].")
+    entries = [_decode(name, raw) for name, raw in tables.items()]
+    if "owners" in zk0:
+        owners, server = _owners(zk0["owners"])
+        taken = {e.name for e in entries} & {e.name for e in owners}
+        if taken:
+            raise RegistryError(f"Registry entry {sorted(taken)[0]!r} is also one of [tool.zk0.owners]; rename it.")
+        has_server = any(e.role == "server" for e in entries)
+        entries = [*owners, *entries, *([] if has_server else [server])]
+    return Registry(entries)
+
+
+def _owners(raw: dict) -> tuple[list[DatasetEntry], DatasetEntry]:
+    """``[tool.zk0.owners]``: its ``count`` generated owners of ``kind``, and that kind's server set."""
+    if not isinstance(raw, dict):
+        raise RegistryError(f"[tool.zk0.owners] must be a table (count = N, kind = ...), not {raw!r}.")
+    unknown = sorted(set(raw) - {"count", "kind"})
+    if unknown:
+        raise RegistryError(f"[tool.zk0.owners] has an unknown key {unknown[0]!r}; expected count and kind.")
+    count, kind = raw.get("count"), raw.get("kind", "synth")
+    if type(count) is not int or not 1 <= count <= MAX_OWNERS:
+        raise RegistryError(f"[tool.zk0.owners] count = {count!r}; expected a whole number from 1 to {MAX_OWNERS}.")
+    if kind not in OWNER_KINDS:
+        raise RegistryError(f"[tool.zk0.owners] kind = {kind!r}; expected one of {list(OWNER_KINDS)}.")
+    form, server = OWNER_KINDS[kind]
+    return [_generated_entry(form.format(i)) for i in range(count)], _generated_entry(server, "server")
+
+
+def _generated_entry(name: str, role: str = "client") -> DatasetEntry:
+    """The registry entry of a dataset zk0 generates: its cameras mapped in order onto camera1, camera2."""
+    spec = SPECS.get(name) or SIM_SPECS[name]
+    return DatasetEntry(
+        repo_id=spec.repo_id,
+        name=name,
+        synthetic=True,
+        role=role,
+        cameras={camera: f"camera{i + 1}" for i, camera in enumerate(spec.cameras)},
+    )
 
 
 def _decode(name: str, raw: dict) -> DatasetEntry:
@@ -123,7 +173,7 @@ def _decode(name: str, raw: dict) -> DatasetEntry:
         raise RegistryError(f"Registry entry {name!r} has role {entry.role!r}; expected one of {list(ROLES)}.")
     if entry.synthetic and name not in SPECS and name not in SIM_SPECS:
         raise RegistryError(
-            f"Registry entry {name!r} is marked synthetic but zk0 generates only {sorted([*SPECS, *SIM_SPECS])}."
+            f"Registry entry {name!r} is marked synthetic but zk0 generates only {[*SPECS.described(), *SIM_SPECS.described()]}."
         )
     if not entry.cameras:
         raise RegistryError(

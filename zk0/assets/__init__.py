@@ -100,7 +100,7 @@ def generated_spec(name: str):
     demonstrations (``zk0.sim.tasks.SIM_SPECS``)."""
     spec = SPECS.get(name) or SIM_SPECS.get(name)
     if spec is None:
-        raise AssetError(f"Unknown generated dataset {name!r}; expected one of {sorted([*SPECS, *SIM_SPECS])}.")
+        raise AssetError(f"Unknown generated dataset {name!r}; expected one of {[*SPECS.described(), *SIM_SPECS.described()]}.")
     return spec
 
 

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from zk0.catalogue import Catalogue
+
 JOINT_NAMES = (
     "shoulder_pan.pos",
     "shoulder_lift.pos",
@@ -64,7 +66,7 @@ class SyntheticSpec:
     approach_rate: float = APPROACH_RATE  # how fast the arm closes in on its target (the action dynamics)
 
 
-SPECS: dict[str, SyntheticSpec] = {
+_HAND_WRITTEN: dict[str, SyntheticSpec] = {
     spec.name: spec
     for spec in (
         SyntheticSpec(
@@ -166,16 +168,51 @@ _NON_IID = (
 )
 NON_IID: dict[str, SyntheticSpec] = {
     f"{name}-noniid": replace(
-        SPECS[name],
+        _HAND_WRITTEN[name],
         name=f"{name}-noniid",
-        repo_id=f"{SPECS[name].repo_id}_noniid",
+        repo_id=f"{_HAND_WRITTEN[name].repo_id}_noniid",
         target_region=region,
         approach_rate=rate,
         benchmark_only=True,
     )
     for name, region, rate in _NON_IID
 }
-SPECS.update(NON_IID)
+_HAND_WRITTEN.update(NON_IID)
+
+OWNER_SEED = 2026  # owner N's conditions come from numpy's generator seeded with (OWNER_SEED, N)
+_CLIENTS = tuple(_HAND_WRITTEN[name] for name, _, _ in _NON_IID)  # the four hand-written owners
+
+
+def synth_owner(index: int) -> SyntheticSpec:
+    """Owner ``index`` of a many-owner federation (``synth-owner-<index>``): its robot, task text and
+    camera names those of one of the four hand-written owners, its colours (two or three of six),
+    half-table region, image size, episode count and length, fps and approach rate drawn from a
+    seeded distribution spanning theirs; the server's ``synth-so100-eval`` spans them all."""
+    rng = np.random.default_rng([OWNER_SEED, index])
+    like = _CLIENTS[int(rng.integers(len(_CLIENTS)))]
+    size = _CLIENTS[int(rng.integers(len(_CLIENTS)))]
+    x0, y0 = float(rng.uniform(0.05, 0.45)), float(rng.uniform(0.1, 0.5))
+    colours = rng.choice(len(COLOURS), size=int(rng.integers(2, 4)), replace=False)
+    return SyntheticSpec(
+        name=f"synth-owner-{index}",
+        repo_id=f"zk0/synth_owner_{index}",
+        robot_type=like.robot_type,
+        task_template=like.task_template,
+        colours=tuple(list(COLOURS)[int(c)] for c in sorted(colours)),
+        cameras=like.cameras,
+        height=size.height,
+        width=size.width,
+        episodes=int(rng.integers(5, 9)),
+        frames_per_episode=int(rng.integers(20, 31)),
+        fps=int(rng.choice([10, 12, 15])),
+        target_region=(x0, x0 + 0.5, y0, y0 + 0.45),
+        approach_rate=float(rng.uniform(0.1, 0.3)),
+    )
+
+
+SPECS: Catalogue[SyntheticSpec] = Catalogue(
+    _HAND_WRITTEN, r"synth-owner-(?P<index>\d+)", lambda m: synth_owner(int(m["index"])), "synth-owner-<N>"
+)
 
 
 def target_pose(u: float, v: float, colour_index: int) -> np.ndarray:

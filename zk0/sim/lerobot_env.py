@@ -49,7 +49,7 @@ class PickCubeEnvConfig(EnvConfig):
     def __post_init__(self):
         if self.conditions not in SIM_SPECS:
             raise ValueError(
-                f"--env.conditions got {self.conditions!r}; expected one of the recorded set-ups {sorted(SIM_SPECS)}."
+                f"--env.conditions got {self.conditions!r}; expected one of the recorded set-ups {SIM_SPECS.described()}."
             )
         image = PolicyFeature(type=FeatureType.VISUAL, shape=(self.observation_height, self.observation_width, 3))
         self.features = {

@@ -17,11 +17,9 @@ import numpy as np
 
 from zk0.sim.env import CUBE_STATE, JOINTS, PickCubeEnv
 from zk0.sim.expert import PickExpert
-from zk0.sim.tasks import DemoSpec, SimTask
+from zk0.sim.tasks import CAMERAS, DemoSpec, SimTask
 
 JOINT_NAMES = tuple(f"{joint}.pos" for joint in JOINTS)  # as lerobot's SO-101 follower names its motors
-
-CAMERAS = ("front", "wrist")
 
 
 def features(task: SimTask, height: int, width: int) -> dict:

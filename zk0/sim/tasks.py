@@ -12,8 +12,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+import numpy as np
+
+from zk0.catalogue import Catalogue
+
 # Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
 RECORDER_VERSION = 3
+CAMERAS = ("front", "wrist")  # every recording's cameras (zk0.sim.record)
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,7 @@ class DemoSpec:
     height: int = 128
     width: int = 128
     role: str = "client"
+    cameras: tuple[str, ...] = CAMERAS
 
 
 def with_cube_in_state(spec: DemoSpec) -> DemoSpec:
@@ -107,4 +113,40 @@ OWNERS: tuple[DemoSpec, ...] = (
     ),
     DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
 )
-SIM_SPECS: dict[str, DemoSpec] = {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))}
+OWNER_SEED = 2026  # owner N's set-up comes from numpy's generator seeded with (OWNER_SEED, N)
+
+
+def sim_owner(index: int) -> DemoSpec:
+    """Owner ``index`` of a many-owner federation (``sim-so101-owner-<index>``): a 6 x 12 cm part of
+    the server's span, two of its four cube colours, its own lighting, front camera and table, and
+    the expert's pace, drawn from a seeded distribution spanning the four hand-written owners'."""
+    rng = np.random.default_rng([OWNER_SEED, index])
+    x0, y0 = float(rng.uniform(0.16, 0.22)), float(rng.uniform(-0.12, 0.0))
+    colours = rng.choice(len(SERVER_TASK.colours), size=2, replace=False)
+    look = Look(
+        light=float(rng.uniform(0.55, 0.9)),
+        light_tint=tuple(float(c) for c in rng.uniform(0.85, 1.0, size=3)),
+        front_camera=(float(rng.uniform(0.53, 0.57)), float(rng.uniform(-0.08, 0.08)), float(rng.uniform(0.42, 0.47))),
+        table_rgba=(*(float(c) for c in rng.uniform(0.45, 0.6, size=3)), 1.0),
+    )
+    task = SimTask(
+        region=(x0, x0 + 0.06, y0, y0 + 0.12),
+        colours=tuple(SERVER_TASK.colours[int(c)] for c in sorted(colours)),
+        look=look,
+    )
+    return DemoSpec(
+        f"sim-so101-owner-{index}", f"zk0/sim_so101_owner_{index}", task, speed=float(rng.uniform(0.12, 0.2))
+    )
+
+
+def _generated(match) -> DemoSpec:
+    owner = sim_owner(int(match["index"]))
+    return with_cube_in_state(owner) if match["cube"] else owner
+
+
+SIM_SPECS: Catalogue[DemoSpec] = Catalogue(
+    {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))},
+    r"sim-so101-owner-(?P<index>\d+)(?P<cube>-cube)?",
+    _generated,
+    "sim-so101-owner-<N>[-cube]",
+)
