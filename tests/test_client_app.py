@@ -59,6 +59,32 @@ def test_a_client_refuses_a_server_running_other_code_and_logs_in_its_own_folder
     assert "Opened synth-so100-stacking" in log.read_text()
 
 
+def test_a_process_keeps_the_sessions_of_its_four_latest_nodes(tmp_path, isolated_logging):
+    """A simulation's actor may run any of 64 owners: it keeps only the latest four built, and an
+    owner met again is moved to the back of the line, not rebuilt."""
+    from flwr.app import ConfigRecord, Context, RecordDict
+
+    from zk0 import client
+
+    config = ConfigRecord({"run-name": "2026-01-01_00-00-00", "server-round": 1})
+    run_config = {"batch-size": 2, "output-dir": str(tmp_path)}
+    client.release_sessions()
+    try:
+        for node in (1, 2, 3, 4, 1, 5, 6):
+            context = Context(
+                run_id=1,
+                node_id=node,
+                node_config={"partition-id": node % 4},
+                state=RecordDict(),
+                run_config=run_config,
+            )
+            client.session_for(context, config)
+        assert [node for _, node in client._SESSIONS] == [4, 1, 5, 6]
+    finally:
+        client.release_sessions()
+    assert not client._SESSIONS
+
+
 def test_a_run_name_that_is_a_path_is_refused():
     from zk0.client import client_log
     from zk0.config import ConfigError

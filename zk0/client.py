@@ -109,7 +109,13 @@ def client_log(node_config: dict, run: RunConfig, run_name: str, index: int) -> 
     return root / run_name / "clients" / f"client_{index}" / "client.log"
 
 
-_SESSIONS: dict[tuple[int, int], ClientSession] = {}
+_SESSIONS: dict[tuple[int, int], ClientSession] = {}  # least recently used first
+# A process keeps the sessions (SmolVLA, optimizer, dataset) of at most this many nodes. A Ray actor
+# of a simulation runs whichever nodes it is given: with 64 owners sampled a few a round it would
+# otherwise keep every owner it ever met (a full-size SmolVLA each). Four covers the quick
+# federation's owners, so a simulation of four rebuilds nothing; an owner met again after being
+# dropped is rebuilt and continues from its node's Context.state (zk0.client._catch_up).
+SESSIONS_KEPT = 4
 _FRESH_PROCESS = True  # the first message a process handles also paid for the process's start
 
 
@@ -117,8 +123,9 @@ def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, 
     """This run's session for this node, built on first use (and the seconds that took)."""
     key = (context.run_id, context.node_id)
     if key in _SESSIONS:
+        _SESSIONS[key] = _SESSIONS.pop(key)  # now the most recently used
         return _SESSIONS[key], 0.0
-    release_sessions(keep_run=context.run_id)
+    release_sessions(keep_run=context.run_id, keep=SESSIONS_KEPT - 1)
     started = time.perf_counter()
     setup_logging("client")
     run = from_run_config(dict(context.run_config))
@@ -154,9 +161,11 @@ def model_shapes(config: ConfigRecord) -> dict[str, tuple[int, ...]]:
     return {key.removeprefix(SHAPE): tuple(value) for key, value in config.items() if key.startswith(SHAPE)}
 
 
-def release_sessions(keep_run: int | None = None) -> None:
-    """Drop the sessions of other runs (their policy, optimizer and GPU memory)."""
-    for stale in [k for k in _SESSIONS if k[0] != keep_run]:
+def release_sessions(keep_run: int | None = None, keep: int = 0) -> None:
+    """Drop the sessions of other runs, and of run ``keep_run`` all but its ``keep`` most recently
+    used (their policy, optimizer and GPU memory)."""
+    ours = [k for k in _SESSIONS if k[0] == keep_run]
+    for stale in [k for k in _SESSIONS if k[0] != keep_run] + ours[: max(0, len(ours) - keep)]:
         session = _SESSIONS.pop(stale)
         if session.personal:
             session.personal.close()
