@@ -160,6 +160,21 @@ def test_study_fills_every_row_and_column_evaluates_as_the_federation_does_and_c
         "or remove that folder to start over.\n"
     )
 
+    # Its JSON stands in for the seed elsewhere (a folder since lost): nothing trains, the figures stay.
+    earlier = tmp_path / "seed-7.json"
+    earlier.write_text((tmp_path / "study.json").read_text())
+    elsewhere = tmp_path / "elsewhere"
+    taken = [*argv[:-6], "--output-dir", str(elsewhere), *argv[-4:], "--seeds-from", str(earlier)]
+    assert main(taken) == 0
+    assert json.loads((elsewhere / "study.json").read_text())["results"]["noniid"]["seeds"]["7"] == again
+    assert not (elsewhere / "noniid").exists(), "nothing was trained"
+    capsys.readouterr()
+    assert main([*taken[:7], "3", *taken[8:]]) == 2
+    assert capsys.readouterr().err == (
+        f"[zk0] --seeds-from {str(earlier)!r} was trained with local_steps = 2, not 3; its seeds cannot be "
+        "tabled with these.\n"
+    )
+
 
 @pytest.mark.slow
 def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_them_up():

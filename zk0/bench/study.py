@@ -557,11 +557,38 @@ def build_parser() -> OneSentenceParser:
         help="training seeds: every model is trained once per seed (the frozen backbone's start, the data order, "
         "the noise) and rolled out on the same seeded episodes; the tables give the mean, the spread and intervals",
     )  # fmt: skip
+    parser.add_argument(
+        "--seeds-from", metavar="JSON",
+        help="an earlier study's JSON (trained with the same settings): the seeds it has are taken from it, with "
+        "every rollout's outcomes, instead of being trained again; the rest are trained and the tables cover all",
+    )  # fmt: skip
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-study")
     parser.add_argument("--json", help="the figures (default: <output-dir>/study.json)")
     parser.add_argument("--chart", help="the PNG chart (default: <output-dir>/study.png)")
     return parser
+
+
+def earlier_seeds(args: argparse.Namespace) -> dict[str, dict[int, dict]]:
+    """The per-seed figures of ``--seeds-from`` (setting -> seed -> figures), if it was trained and
+    rolled out as this command would (a ``Zk0Error`` naming the first setting that differs)."""
+    if not args.seeds_from:
+        return {}
+    try:
+        earlier = json.loads(Path(args.seeds_from).read_text())
+        settings, results = earlier["settings"], earlier["results"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise Zk0Error(
+            f"--seeds-from {args.seeds_from!r} is not a study's JSON (python -m zk0.bench study --json)."
+        ) from None
+    for key in (*TRAINING_KEYS, "sim_episodes"):
+        mine = json.loads(json.dumps(vars(args)[key]))
+        if settings.get(key) != mine:
+            raise Zk0Error(
+                f"--seeds-from {args.seeds_from!r} was trained with {key} = {settings.get(key)!r}, not {mine!r}; "
+                "its seeds cannot be tabled with these."
+            )
+    return {setting: {int(seed): run for seed, run in result["seeds"].items()} for setting, result in results.items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -578,10 +605,12 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--clients got {args.clients}; the {setting} setting has {available} client datasets")
     out = Path(args.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    try:  # before any training: a folder of models trained otherwise
+    try:  # before any training: a folder of models trained otherwise, or figures from another study
+        earlier = earlier_seeds(args)
         for setting in args.settings:
             for seed in args.seeds:
-                study_stash(args, setting, seed)
+                if seed not in earlier.get(setting, {}):
+                    study_stash(args, setting, seed)
     except Zk0Error as err:
         print(f"[zk0] {err}", file=sys.stderr)
         return 2
@@ -590,7 +619,7 @@ def main(argv: list[str] | None = None) -> int:
     for setting in args.settings:
         runs = []
         for seed in args.seeds:
-            run = run_seed(args, setting, seed)
+            run = earlier.get(setting, {}).get(seed) or run_seed(args, setting, seed)
             if run is None:
                 return 1
             print_setting(setting, run, args)
