@@ -18,7 +18,7 @@ def exit_code(call, argv: list[str]) -> int:
 
 
 COMMANDS = ["assets", "check", "certs", "superlink", "supernode"]
-BENCHES = "learning, study, robust, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, hetero"
+BENCHES = "learning, study, robust, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, hetero, scale"
 
 
 def test_the_benchmark_list_is_zk0s():
@@ -93,6 +93,18 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
             ["hetero", "--share", "2"],
             "python -m zk0.bench hetero: --share got 2.0; expected a share of the CPU in (0, 1]; "
             "see python -m zk0.bench hetero --help.",
+        ),
+        (
+            bench,
+            ["hetero", "--slow", "4"],
+            "python -m zk0.bench hetero: --slow got 4; expected fewer than --clients (4): someone must be fast; "
+            "see python -m zk0.bench hetero --help.",
+        ),
+        (
+            bench,
+            ["scale", "--owners", "1", "16"],
+            "python -m zk0.bench scale: --owners got 1; expected 2 or more owners in each federation; "
+            "see python -m zk0.bench scale --help.",
         ),
         (
             bench,

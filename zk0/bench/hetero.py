@@ -1,19 +1,20 @@
 """Hetero benchmark: owners with different hardware, fixed steps against a time budget.
 
 One loopback Deployment Engine federation (``zk0.loopback``: a TLS SuperLink and one
-``zk0 supernode`` per owner) in which the last owner's SuperNode is held to ``--share`` of the
-CPU for the whole benchmark (``zk0.bench.throttle``: SIGSTOP/SIGCONT duty-cycling, as cpulimit
-does). Three runs on it, one after another: every client taking ``--local-steps`` a round (today's
-default: each round waits for the slow owner), and ``local-time-s = --budget`` averaged with
-FedNova's normalisation and with plain sample weighting. For each: the wall time of every round
-after the first (which builds the clients), its ratio to the budget, the slow owner's step time
-against the others' (how slow the throttle made it, measured) and its share of the steps, and
-the server's action MSE per round, compared at equal wall time (counted from the end of round 1,
-which builds every client): each budget run's final model against the fixed-steps model of the
-last round that had ended by then.
+``zk0 supernode`` per owner) in which the last ``--slow`` owners' SuperNodes are each held to
+``--share`` of the CPU for the whole benchmark (``zk0.bench.throttle``: SIGSTOP/SIGCONT
+duty-cycling, as cpulimit does). Three runs on it, one after another: every client taking
+``--local-steps`` a round (today's default: each round waits for the slow owners), and
+``local-time-s = --budget`` (with ``round-deadline-s = --deadline``) averaged with FedNova's
+normalisation and with plain sample weighting. For each: the wall time of every round after the
+first (which builds the clients), its ratio to the budget, the slow owners' step time against the
+others' (how slow the throttle made them, measured) and their share of the steps, the clients
+each round named as stragglers or late, and the server's action MSE per round, compared at equal
+wall time (counted from the end of round 1, which builds every client): each budget run's final
+model against the fixed-steps model of the last round that had ended by then.
 
-    python -m zk0.bench hetero [--clients 4] [--rounds 6] [--local-steps 100] [--budget 10]
-        [--share 0.25] [--batch-size 8] [--lr 2e-3] [--json FILE]
+    python -m zk0.bench hetero [--clients 4] [--slow 1] [--rounds 6] [--local-steps 100] [--budget 10]
+        [--deadline 30] [--share 0.25] [--batch-size 8] [--lr 2e-3] [--json FILE]
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import statistics
 import sys
 import tempfile
+from contextlib import ExitStack
 from pathlib import Path
 
 from zk0.bench.client import write_json
@@ -38,7 +40,7 @@ RUNS = {  # label -> the run-config keys it adds (the budget's value comes from 
 
 def run_config(args, keys: dict) -> str:
     """One run's keys: the same rounds, steps, batch and learning rate for all three."""
-    budget = f" local-time-s={args.budget}" if keys else ""
+    budget = f" local-time-s={args.budget} round-deadline-s={args.deadline}" if keys else ""
     extra = "".join(f" {k}='{v}'" for k, v in keys.items())
     return (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} lr={args.lr} "
@@ -46,23 +48,25 @@ def run_config(args, keys: dict) -> str:
     )
 
 
-def figures_of(history: dict, slow: int, budget: float | None) -> dict:
-    """A run's round walls, the slow owner's measured slowness and share of steps, MSE by wall time."""
+def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
+    """A run's round walls, the slow owners' measured slowness and share of steps, MSE by wall time."""
     rounds = history["rounds"]
     walls = {r["round"]: r["wall-s"] for r in rounds}
     steady = [walls[r] - walls[r - 1] for r in range(2, max(walls) + 1)]
     trained = [
         (int(i), c["train"]) for r in rounds[2:] for i, c in r["clients"].items() if "local-steps" in c.get("train", {})
     ]
-    slow_steps = sum(t["local-steps"] for i, t in trained if i == slow)
+    slow_steps = sum(t["local-steps"] for i, t in trained if i in slow)
     step_time = {
-        who: statistics.mean(t["step-time"] for i, t in trained if (i == slow) == (who == "slow"))
+        who: statistics.mean(t["step-time"] for i, t in trained if (i in slow) == (who == "slow"))
         for who in ("slow", "others")
     }
     return {
         "steady-round-s": steady,
         "mean-steady-round-s": statistics.mean(steady),
         "round-vs-budget": statistics.mean(steady) / budget if budget else None,
+        "longest-round-s": max(steady),
+        "late": {str(r["round"]): r["late"]["clients"] for r in rounds if r.get("late")},
         "slow-owner-step-slowdown": step_time["slow"] / step_time["others"],
         "slow-owner-share-of-steps": slow_steps / sum(t["local-steps"] for _, t in trained),
         "steps-by-client": {
@@ -88,9 +92,11 @@ def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench hetero", description=__doc__.split("\n\n")[0])
     parser.add_argument("--clients", type=positive(int), default=4)
+    parser.add_argument("--slow", type=positive(int), default=1, help="how many owners (the last) are throttled")
     parser.add_argument("--rounds", type=positive(int), default=6)
     parser.add_argument("--local-steps", type=positive(int), default=100)
     parser.add_argument("--budget", type=positive(float), default=10.0, help="local-time-s of the budget runs")
+    parser.add_argument("--deadline", type=positive(float), default=30.0, help="round-deadline-s of the budget runs")
     parser.add_argument("--share", type=positive(float), default=0.25, help="the slow owner's share of the CPU")
     parser.add_argument("--batch-size", type=positive(int), default=8)
     parser.add_argument("--lr", type=positive(float), default=2e-3)
@@ -108,12 +114,16 @@ def main(argv: list[str] | None = None) -> int:
     clients = load_registry().clients[: args.clients]
     if len(clients) < args.clients or args.clients < 2:
         parser.error(f"--clients got {args.clients}; expected 2 to {len(load_registry().clients)}")
+    if args.slow >= args.clients:
+        parser.error(f"--slow got {args.slow}; expected fewer than --clients ({args.clients}): someone must be fast")
     supernodes = {f"robot-{i}": entry.name for i, entry in enumerate(clients)}
-    slow = args.clients - 1
-    figures: dict = {"settings": vars(args), "slow-owner": f"client {slow} ({clients[slow].name})"}
+    slow = set(range(args.clients - args.slow, args.clients))
+    figures: dict = {"settings": vars(args), "slow-owners": [f"client {i} ({clients[i].name})" for i in sorted(slow)]}
     with tempfile.TemporaryDirectory(prefix="zk0-bench-hetero-") as tmp:
         root = Path(tmp)
-        with loopback_federation(root, supernodes) as fed, Throttle(root / f"robot-{slow}", args.share):
+        with loopback_federation(root, supernodes) as fed, ExitStack() as throttles:  # throttles end first
+            for i in sorted(slow):
+                throttles.enter_context(Throttle(root / f"robot-{i}", args.share))
             for label, keys in RUNS.items():
                 out = root / label.replace(", ", "-").replace(" ", "-")
                 history = fed.run_history(run_config(args, keys), out, f"bench.hetero ({label})", timeout=3600)
@@ -129,14 +139,19 @@ def main(argv: list[str] | None = None) -> int:
 def report(figures: dict, args) -> None:
     """The table, and each budget run against fixed steps at its own wall time."""
     fixed = figures["fixed steps"]
-    print(f"\n{args.clients} owners, {figures['slow-owner']} held to {args.share:.0%} of the CPU; {args.rounds} rounds "
-          f"of {args.local_steps} steps or local-time-s={args.budget:g}, batch {args.batch_size}, lr {args.lr:g}")  # fmt: skip
-    print(f"{'':<16}{'round s':>9}{'x budget':>10}{'slow step':>11}{'slow share':>12}{'final MSE':>11}{'wall s':>8}")
+    print(f"\n{args.clients} owners, {', '.join(figures['slow-owners'])} held to {args.share:.0%} of the CPU; "
+          f"{args.rounds} rounds of {args.local_steps} steps or local-time-s={args.budget:g} "
+          f"(round-deadline-s={args.deadline:g}), batch {args.batch_size}, lr {args.lr:g}")  # fmt: skip
+    print(f"{'':<16}{'round s':>9}{'longest':>9}{'x budget':>10}{'slow step':>11}{'slow share':>12}"
+          f"{'final MSE':>11}{'wall s':>8}")  # fmt: skip
     for label in RUNS:
         f = figures[label]
         ratio = "-" if f["round-vs-budget"] is None else f"{f['round-vs-budget']:.2f}"
-        print(f"{label:<16}{f['mean-steady-round-s']:>9.1f}{ratio:>10}{f['slow-owner-step-slowdown']:>10.1f}x"
-              f"{f['slow-owner-share-of-steps']:>12.1%}{f['mse-by-wall'][-1][1]:>11.4g}{f['wall-s']:>8.0f}")  # fmt: skip
+        print(f"{label:<16}{f['mean-steady-round-s']:>9.1f}{f['longest-round-s']:>9.1f}{ratio:>10}"
+              f"{f['slow-owner-step-slowdown']:>10.1f}x{f['slow-owner-share-of-steps']:>12.1%}"
+              f"{f['mse-by-wall'][-1][1]:>11.4g}{f['wall-s']:>8.0f}")  # fmt: skip
+        for round_number, late in f["late"].items():
+            print(f"  round {round_number}: late, dropped: {', '.join(f'client {i}' for i in late)}")
     for label in list(RUNS)[1:]:
         f = figures[label]
         wall, mse = f["mse-by-wall"][-1]
