@@ -136,6 +136,42 @@ def test_a_best_round_that_keeps_a_checkpoint_links_models_best_to_its_files(tmp
     assert sorted(p.name for p in models.iterdir()) == ["best", "checkpoint_round_2"]
 
 
+def test_only_the_newest_checkpoints_are_kept_and_models_best_outlives_its_own(tmp_path, client_parts, registry):
+    """keep-checkpoints=2, a checkpoint every round: once round N's is complete, round N-2's goes;
+    models/best, hard links to round 1's files, stays whole when round 1's checkpoint is removed."""
+    from safetensors.torch import load_file
+
+    from zk0.artifacts import checkpoints
+    from zk0.policy import get_trainable
+
+    run = RunConfig(num_server_rounds=4, checkpoint_interval=1, keep_checkpoints=2)
+    artifacts = server_artifacts(run, tmp_path, client_parts, registry)
+    start = get_trainable(client_parts[0])
+    name = next(iter(start))
+    rounds = {r: ArrayRecord({n: t + 0.01 * r for n, t in start.to_torch_state_dict().items()}) for r in (1, 2, 3, 4)}
+    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0}), {})
+    artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 10.0}), {})  # the best, for good
+    artifacts.round_ended(2, rounds[2], MetricRecord({"action-mse": 20.0}), {})
+    assert [r for r, _ in checkpoints(tmp_path)] == [1, 2]
+    for r in (3, 4):
+        artifacts.round_ended(r, rounds[r], MetricRecord({"action-mse": 30.0}), {})
+    artifacts.finish_writes()
+    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == [
+        "best",
+        "checkpoint_round_3",
+        "checkpoint_round_4",
+    ]
+    best = load_file(tmp_path / "models" / "best" / "model.safetensors")[name]
+    assert torch.equal(best, torch.from_numpy(rounds[1][name].numpy()))
+
+    every = RunConfig(num_server_rounds=3, checkpoint_interval=1, keep_checkpoints=0)
+    artifacts = server_artifacts(every, tmp_path / "every", client_parts, registry)
+    for r in (0, 1, 2, 3):
+        artifacts.round_ended(r, rounds.get(r, start), MetricRecord({"action-mse": 50.0 - r}), {})
+    artifacts.finish_writes()
+    assert [r for r, _ in checkpoints(tmp_path / "every")] == [1, 2, 3]
+
+
 def test_a_middle_rounds_best_is_written_while_the_next_round_trains(tmp_path, client_parts, registry):
     """A middle round's models/best (1.8 GB full-size) is not written before the round ends, when
     the clients would wait for it, but in a thread while they train; it takes the server's policy

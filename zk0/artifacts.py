@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import dataclass, field
@@ -172,6 +173,7 @@ def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, wi
 
 
 ROUND_FILE = "zk0_round.json"  # in every checkpoint: the round it holds and the server's evaluation of it
+CHECKPOINT = re.compile(r"checkpoint_round_(\d+)")
 SERVER_STATE_FILE = "server_optimiser.safetensors"  # in every checkpoint: the server optimiser's state
 
 
@@ -216,6 +218,28 @@ def save_checkpoint(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return final
+
+
+def checkpoints(run_dir: Path) -> list[tuple[int, Path]]:
+    """The run's complete checkpoints, oldest first: (round, folder). A folder is renamed into
+    place only once complete, so one that has its weights is whole."""
+    return sorted(
+        (int(m.group(1)), p)
+        for p in (run_dir / "models").glob("checkpoint_round_*")
+        if (m := CHECKPOINT.fullmatch(p.name)) and (p / "model.safetensors").is_file()
+    )
+
+
+def prune_checkpoints(run_dir: Path, keep: int) -> list[int]:
+    """Remove all but the newest ``keep`` complete checkpoints (0: keep every one); the rounds removed.
+
+    Called once a new checkpoint is complete, so resume always has one. ``models/best`` is a folder
+    of its own (hard links to its checkpoint's files), so it stays whole when its checkpoint goes."""
+    done = checkpoints(run_dir)
+    old = done[:-keep] if keep else []
+    for _, folder in old:
+        shutil.rmtree(folder)
+    return [number for number, _ in old]
 
 
 def link_checkpoint(checkpoint: Path, name: str) -> Path:

@@ -58,6 +58,7 @@ class RunConfig:
     eval_episodes: int = 2
     eval_batches: int = 4
     checkpoint_interval: int = 5
+    keep_checkpoints: int = 2  # the newest N checkpoints stay on disk (models/best besides); 0 = every one
     model: str = "tiny"
     chunk_size: int = 10
     device: str = "auto"
@@ -133,6 +134,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "eval_episodes": (1, None, False),
     "eval_batches": (1, None, False),
     "checkpoint_interval": (1, None, False),
+    "keep_checkpoints": (0, None, False),
     "chunk_size": (1, None, False),
     "num_workers": (-1, None, False),
     "tolerance_s": (0, None, True),

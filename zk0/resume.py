@@ -23,11 +23,10 @@ from safetensors import safe_open
 from safetensors.torch import load_file
 
 from zk0 import adapters
-from zk0.artifacts import ROUND_FILE, SERVER_STATE_FILE
+from zk0.artifacts import ROUND_FILE, SERVER_STATE_FILE, checkpoints
 from zk0.config import ConfigError
 from zk0.policy import PolicyBundle, get_trainable
 
-CHECKPOINT = re.compile(r"checkpoint_round_(\d+)")
 CLIENT_STATS = re.compile(r"client_(\d+)_.*")
 
 
@@ -64,11 +63,7 @@ def find_resume_point(resume_from: str) -> ResumePoint:
         raise ConfigError(
             f"Run-config key 'resume-from' got {resume_from!r}; expected a zk0 run folder (outputs/<run>)."
         )
-    done = sorted(
-        (int(m.group(1)), p)
-        for p in (run_dir / "models").glob("checkpoint_round_*")
-        if (m := CHECKPOINT.fullmatch(p.name)) and (p / "model.safetensors").is_file()
-    )
+    done = checkpoints(run_dir)
     if not done:
         raise ConfigError(f"Run folder {str(run_dir)!r} has no complete checkpoint to resume from.")
     last, checkpoint = done[-1]

@@ -29,7 +29,7 @@ from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0 import stopping
-from zk0.artifacts import ROUND_FILE, History, clients_trained, link_checkpoint, save_checkpoint
+from zk0.artifacts import ROUND_FILE, History, clients_trained, link_checkpoint, prune_checkpoints, save_checkpoint
 from zk0.config import RunConfig
 from zk0.hub import can_push, publish
 from zk0.logs import say
@@ -189,6 +189,8 @@ class RoundArtifacts:
         state = (self.run.server_optimiser, server_state)
         path = self.save(server_round, arrays, dict(evaluation) if evaluation else None, server_state=state)
         logger.info("Round {} checkpoint: {}", server_round, path)
+        if removed := prune_checkpoints(self.history.run_dir, self.run.keep_checkpoints):
+            logger.info("keep-checkpoints={}: removed the checkpoints of rounds {}", self.run.keep_checkpoints, removed)
         if self.run.hf_repo_id and self.run.hf_push_every_checkpoint:
             metrics = dict(evaluation) if evaluation else None
             publish(self.run, self.history.run_dir, path, server_round, self.entries(), metrics, self.push, tag=True)

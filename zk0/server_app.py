@@ -26,6 +26,7 @@ from zk0.aggregation import ValidatingStrategy, array_signature
 from zk0.artifacts import History, new_run_dir, write_json
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
+from zk0.disk import bytes_needed, check_room, checkpoint_bytes
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
 from zk0.internals import is_simulation, shorten_object_pull_backoff
@@ -168,6 +169,7 @@ def main(grid: Grid, context: Context) -> None:
 
     with refusals_in_one_sentence(), prints_to_log("lerobot"):  # e.g. lora-targets that match no module
         bundle = build_policy(run, meta, entry, registry.model_cameras())
+        check_room(run_dir, bytes_needed(run, done + 1, checkpoint_bytes(bundle)))
     initial = resumed.trainable(bundle) if resumed else get_trainable(bundle)
     describe_run(run, registry, bundle)
     fingerprint = backbone_fingerprint(bundle)

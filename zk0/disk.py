@@ -1,0 +1,67 @@
+"""Will the run fit on the disk? Checked before round 1, so a run does not die of a full disk on day three.
+
+A full-size checkpoint is 1.8 GB; a run writes one every ``checkpoint-interval`` rounds and keeps
+the newest ``keep-checkpoints`` (one more while the next is being written, before the oldest
+goes), ``models/best`` beside them, and a few small files a round (its JSON, the charts, with
+closed-loop evaluation a video). The estimate is what the run still has to write from here; the
+ServerApp refuses in one sentence, naming the folder, what the run needs and what is free, when it
+cannot fit, and warns when it fills the disk to within a tenth.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from loguru import logger
+
+from zk0.config import RunConfig
+from zk0.errors import Zk0Error
+from zk0.policy import PolicyBundle
+
+PER_ROUND_BYTES = 2 * 2**20  # a round's JSON files, the rewritten charts and report, a closed-loop video
+GB = 1e9
+
+
+def checkpoint_bytes(bundle: PolicyBundle) -> int:
+    """One checkpoint's size: the policy's weights, and the server optimiser's state (at most two
+    fp32 moments of every trainable tensor: FedAdam's)."""
+    state = bundle.policy.state_dict()
+    weights = sum(t.numel() * t.element_size() for t in state.values())
+    return weights + 2 * 4 * sum(state[name].numel() for name in bundle.trainable_names if name in state)
+
+
+def checkpoints_on_disk(run: RunConfig, first_round: int) -> int:
+    """How many checkpoints rounds ``first_round``.. of the run have on disk at once, at most."""
+    written = sum(run.checkpoints_in(r) for r in range(first_round, run.num_server_rounds + 1))
+    return min(written, run.keep_checkpoints + 1) if run.keep_checkpoints else written
+
+
+def bytes_needed(run: RunConfig, first_round: int, checkpoint_bytes: int) -> int:
+    """What the run writes from round ``first_round`` on: its checkpoints, models/best, per-round files."""
+    rounds = run.num_server_rounds - first_round + 1
+    return (checkpoints_on_disk(run, first_round) + 1) * checkpoint_bytes + rounds * PER_ROUND_BYTES
+
+
+def size(count: int) -> str:
+    """``1.8 GB``, or ``21 MB`` below a tenth of a gigabyte."""
+    return f"{count / GB:.1f} GB" if count >= 0.1 * GB else f"{count / 1e6:.0f} MB"
+
+
+def check_room(folder: Path, needed: int) -> None:
+    """Refuse (a ``Zk0Error``) when ``needed`` bytes do not fit in ``folder``'s free space; warn
+    when they leave less than a tenth of it."""
+    free = shutil.disk_usage(folder).free
+    said = f"{str(folder)!r} needs about {size(needed)} for this run's checkpoints, models/best and round files"
+    if needed > free:
+        raise Zk0Error(
+            f"{said}, but only {size(free)} is free there; free some space, pick another output-dir "
+            "or lower keep-checkpoints."
+        )
+    if needed > 0.9 * free:
+        logger.warning(
+            "{}, which leaves {} of the {} free there: the disk will be nearly full.",
+            said,
+            size(free - needed),
+            size(free),
+        )
