@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
@@ -10,10 +11,43 @@ import subprocess
 import pytest
 
 from zk0.config import RunConfig
-from zk0.disk import GB, PER_ROUND_BYTES, bytes_needed, check_room, checkpoint_bytes, checkpoints_on_disk, size
+from zk0.disk import (
+    GB,
+    PER_ROUND_BYTES,
+    bytes_needed,
+    check_room,
+    checkpoint_bytes,
+    checkpoints_on_disk,
+    full_disk_in_one_sentence,
+    is_full,
+    size,
+)
 from zk0.errors import Zk0Error
 
 FULL_SIZE = 1.8e9  # a full-size SmolVLA checkpoint (docs/performance.md)
+
+
+@contextlib.contextmanager
+def small_disk(folder, megabytes: float):
+    """A filesystem of its own at ``folder`` (tmpfs), ``megabytes`` big: a disk the test can fill."""
+    if os.geteuid() != 0:
+        pytest.skip("mounting a small filesystem (tmpfs) needs root")
+    folder.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={int(megabytes * 1024)}k", "tmpfs", str(folder)], check=True)
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", "--lazy", str(folder)], check=False)
+
+
+def fill(folder, leave: int = 0) -> None:
+    """Write a file in ``folder`` that leaves at most ``leave`` bytes of its filesystem free."""
+    with open(folder / "filler", "wb", buffering=0) as out:
+        while (free := shutil.disk_usage(folder).free - leave) > 0:
+            try:
+                out.write(b"\0" * min(free, 2**20))
+            except OSError:  # full: the filesystem's own accounting rounds to its blocks
+                break
 
 
 def test_a_long_full_size_run_stays_under_ten_gigabytes_at_the_default():
@@ -69,6 +103,31 @@ def test_a_run_that_cannot_fit_is_refused_in_one_sentence_and_a_tight_one_warned
         logger.remove(sink)
 
 
+def test_a_full_disk_leaves_no_half_file_and_reads_as_one_sentence(tmp_path):
+    """On a real full filesystem: zk0's writes leave neither the file nor a temporary one; the
+    errors Python and safetensors raise are both recognised and read as one sentence."""
+    import torch
+    from safetensors.torch import save_file
+
+    from zk0.artifacts import write_json
+
+    with small_disk(tmp_path / "disk", 1) as disk:
+        fill(disk, leave=4096)
+        with pytest.raises(OSError) as python:
+            write_json(disk / "server" / "round_3.json", {"x": "y" * 100_000})
+        assert is_full(python.value)
+        assert sorted(p.name for p in disk.rglob("*")) == ["filler", "server"]
+        with pytest.raises(Exception) as wrapped:  # safetensors' SafetensorError: "... os error 28"
+            save_file({"w": torch.zeros(100_000)}, disk / "state.safetensors")
+        assert not isinstance(wrapped.value, OSError) and is_full(wrapped.value)
+        assert not is_full(OSError(13, "Permission denied")) and not is_full(ValueError("no space"))
+        with pytest.raises(Zk0Error) as said, full_disk_in_one_sentence(tmp_path, "free some space there."):
+            write_json(disk / "server" / "round_3.json", {"x": "y" * 100_000})
+        assert (
+            str(said.value) == f"The disk holding {str(disk / 'server')!r} is full (0 MB free); free some space there."
+        )
+
+
 @pytest.mark.e2e
 def test_a_federation_whose_output_folder_is_too_small_is_refused_before_round_1(tmp_path):
     """The real `flwr run` with output-dir on a 2 MB filesystem (tmpfs): one sentence naming the
@@ -89,3 +148,36 @@ def test_a_federation_whose_output_folder_is_too_small_is_refused_before_round_1
     sentence = f"zk0: {str(run_dir)!r} needs about "
     assert log.count(sentence) == 1 and "but only 2 MB is free there; free some space" in log, log[-4000:]
     assert "Exit Code: " in log and "Round 1" not in log and "Traceback" not in log, log[-4000:]
+
+
+@pytest.mark.e2e
+def test_a_disk_that_fills_mid_run_stops_it_in_one_sentence_and_resume_finishes_it(tmp_path):
+    """The output folder's disk fills once round 1's checkpoint is written (another program, say):
+    the run stops with zk0's sentence naming that disk, no traceback; freed, `resume-from` ends it."""
+    import threading
+    import time
+
+    from zk0.simulation import cpu_federation, flwr_run, local_federation
+
+    config = "num-server-rounds=3 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1"
+    with small_disk(tmp_path / "disk", 512) as disk, local_federation(tmp_path / "flwr-home") as env:
+
+        def fill_after_round_1() -> None:
+            deadline = time.monotonic() + 600
+            while not list(disk.glob("*/models/checkpoint_round_1")) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            fill(disk)
+
+        filler = threading.Thread(target=fill_after_round_1)
+        filler.start()
+        log = flwr_run(env, f"{config} output-dir='{disk}'", cpu_federation(2, actors=1))
+        filler.join()
+        (run_dir,) = [p for p in disk.iterdir() if p.is_dir()]
+        assert "is full (0 MB free); " in log and "Exit Code: " in log, log[-4000:]
+        assert "Traceback" not in log and "Done in" not in log, log[-4000:]
+        assert not [p for p in run_dir.rglob("*") if p.name.startswith(".") or "partial" in p.name]
+
+        (disk / "filler").unlink()
+        log = flwr_run(env, f"{config} output-dir='{disk}' resume-from='{run_dir}'", cpu_federation(2, actors=1))
+        assert "Done in" in log, log[-4000:]
+        assert (run_dir / "models" / "checkpoint_round_3" / "model.safetensors").is_file()

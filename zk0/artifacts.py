@@ -21,6 +21,7 @@ import os
 import re
 import shutil
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -62,12 +63,25 @@ def client_dir(run_dir: Path, index: int) -> Path:
     return run_dir / "clients" / f"client_{index}"
 
 
-def write_text(path: Path, text: str) -> None:
-    """Write a file atomically (temp file + rename): readers never see half of it."""
+def replace_with(path: Path, write: Callable[[Path], None], suffix: str = ".tmp") -> None:
+    """``write`` a temporary file beside ``path``, then rename it to ``path``: readers never see half
+    of it, and a write that fails (a full disk) leaves neither a half file nor the temporary one."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False, encoding="utf-8") as tmp:
-        tmp.write(text)
-    os.replace(tmp.name, path)
+    handle, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix)
+    os.close(handle)
+    try:
+        write(Path(name))
+        os.replace(name, path)
+    except BaseException as err:
+        Path(name).unlink(missing_ok=True)
+        if isinstance(err, OSError) and not err.filename:  # a failed write names no file: this one
+            err.filename = str(path)
+        raise
+
+
+def write_text(path: Path, text: str) -> None:
+    """Write a file atomically (temp file + rename)."""
+    replace_with(path, lambda tmp: tmp.write_text(text, encoding="utf-8"))
 
 
 def write_json(path: Path, data: dict) -> None:
@@ -153,10 +167,7 @@ class History:
         ax.grid(alpha=0.3)
         if ax.lines:
             ax.legend(fontsize=8)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.png")
-        fig.savefig(tmp, dpi=100)
-        os.replace(tmp, path)
+        replace_with(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"), suffix=".png")
 
 
 def _band(ax, points: list[tuple[int, float, int]]) -> None:

@@ -30,6 +30,7 @@ from torch.utils.data import DataLoader
 from zk0 import app_fingerprint, client_state, machine
 from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data import DatasetSplit, eval_loader, open_split, train_loader
+from zk0.disk import full_disk_in_one_sentence
 from zk0.errors import Zk0Error
 from zk0.logs import add_file_sink, prints_to_log, setup_logging
 from zk0.personal import Personaliser, build_personaliser
@@ -306,7 +307,12 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
     _FRESH_PROCESS = False
     share_this_machine()
     session, build = session_for(context, content["config"])
-    with logger.contextualize(party=session.party), _named(session.index, session.split.entry.name):
+    mine = client_log(dict(context.node_config), session.run, str(content["config"]["run-name"]), session.index).parent
+    with (
+        logger.contextualize(party=session.party),
+        _named(session.index, session.split.entry.name),
+        full_disk_in_one_sentence(mine, "free some space there; the server goes on with the other clients."),
+    ):
         _check_server(session, content["config"])
         set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
         restore = _catch_up(session, context, content["config"]) if kind == "train" else 0.0

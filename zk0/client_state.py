@@ -33,7 +33,11 @@ def keep(folder: Path, server_round: int, trainer: LocalTrainer) -> None:
     final = state_file(folder, server_round)
     partial = final.with_suffix(".partial")
     tensors = {name: t.contiguous() for name, t in trainer.optimizer_record().to_torch_state_dict().items()}
-    save_file(tensors, partial, metadata={"batches-seen": str(trainer.batches_seen)})
+    try:
+        save_file(tensors, partial, metadata={"batches-seen": str(trainer.batches_seen)})
+    except BaseException:  # a full disk: no half file left where a resumed run would look
+        partial.unlink(missing_ok=True)
+        raise
     partial.replace(final)
     rounds = sorted(int(p.stem.removeprefix("round_")) for p in folder.glob("round_*.safetensors"))
     for old in rounds[:-KEPT]:

@@ -1,16 +1,23 @@
-"""Will the run fit on the disk? Checked before round 1, so a run does not die of a full disk on day three.
+"""Will the run fit on the disk? Checked before round 1, so a run does not die of a full disk on day three;
+and if the disk fills anyway (another program, a frame cache), one sentence instead of a traceback.
 
 A full-size checkpoint is 1.8 GB; a run writes one every ``checkpoint-interval`` rounds and keeps
 the newest ``keep-checkpoints`` (one more while the next is being written, before the oldest
 goes), ``models/best`` beside them, and a few small files a round (its JSON, the charts, with
 closed-loop evaluation a video). The estimate is what the run still has to write from here; the
 ServerApp refuses in one sentence, naming the folder, what the run needs and what is free, when it
-cannot fit, and warns when it fills the disk to within a tenth.
+cannot fit, and warns when it fills the disk to within a tenth. A disk that fills mid-run ends the
+run (or the client's message) with ``full_disk_in_one_sentence``'s sentence, naming the folder and
+its free space; every file zk0 writes is renamed into place once complete, so none is left half
+written where a reader or a resumed run would take it.
 """
 
 from __future__ import annotations
 
+import errno
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from loguru import logger
@@ -65,3 +72,32 @@ def check_room(folder: Path, needed: int) -> None:
             size(free - needed),
             size(free),
         )
+
+
+def is_full(err: BaseException) -> bool:
+    """Whether ``err`` says a disk is full: an ``OSError`` with ENOSPC, or a library's error that
+    wraps one (safetensors: "I/O error: No space left on device (os error 28)")."""
+    return (isinstance(err, OSError) and err.errno == errno.ENOSPC) or "No space left on device" in str(err)
+
+
+def _existing(path: Path) -> Path:
+    """``path`` or its nearest folder that exists (a file a full disk kept from being written may not)."""
+    while not path.is_dir() and path != path.parent:
+        path = path.parent
+    return path
+
+
+@contextmanager
+def full_disk_in_one_sentence(where: Path, then: str) -> Iterator[None]:
+    """A full disk inside the ``with`` becomes a ``Zk0Error``: the folder (the file's, when the error
+    names one, else ``where``), its free space, and ``then``, what to do about it."""
+    try:
+        yield
+    except Zk0Error:
+        raise
+    except Exception as err:
+        if not is_full(err):
+            raise
+        folder = _existing(Path(err.filename) if isinstance(err, OSError) and err.filename else where)
+        free = shutil.disk_usage(folder).free
+        raise Zk0Error(f"The disk holding {str(folder)!r} is full ({size(free)} free); {then}") from None

@@ -17,6 +17,7 @@ lerobot would, so a broken video still costs batches, not the client.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -124,7 +125,11 @@ def build_episode(
     target = cache.path(episode, camera)
     target.parent.mkdir(parents=True, exist_ok=True)
     partial_file = target.with_suffix(".partial.npy")
-    np.save(partial_file, np.concatenate(chunks))
+    try:
+        np.save(partial_file, np.concatenate(chunks))
+    except BaseException:  # a full disk: no half file left behind
+        partial_file.unlink(missing_ok=True)
+        raise
     os.replace(partial_file, target)
 
 
@@ -168,6 +173,14 @@ def attach_frame_cache(
         for ep, cam in todo:
             try:
                 build_episode(dataset, cache, ep, cam, rows[ep], backend)
+            except OSError as err:
+                if err.errno != errno.ENOSPC:
+                    raise
+                logger.warning(
+                    "Dataset {!r}: the disk holding {} filled up while caching its frames; the rest are read "
+                    "from the video.", name, directory
+                )  # fmt: skip
+                break
             except Exception as err:  # noqa: BLE001  # the batches that need it will report it
                 logger.warning("Dataset {!r}: {} of episode {} did not decode ({}); it is read from the video.",
                                name, cam, ep, err)  # fmt: skip

@@ -19,6 +19,7 @@ traceback; the traceback goes to the log files only, at DEBUG.
 from __future__ import annotations
 
 import contextlib
+import errno
 import inspect
 import io
 import logging
@@ -127,14 +128,33 @@ def add_file_sink(log_file: Path, party: str, level: str = "INFO") -> int:
     log_file.parent.mkdir(parents=True, exist_ok=True)
     threshold = logger.level(level).no
     return logger.add(
-        log_file,
+        _LogFile(log_file),
         level="DEBUG",
         format=FORMAT,
         backtrace=False,
         diagnose=False,
-        buffering=1,  # line by line: simulation actors are killed at the end of a run
         filter=lambda r: r["extra"].get("party") == party and (r["level"].no >= threshold or "traceback" in r["extra"]),
     )
+
+
+class _LogFile:
+    """A log file, line by line (simulation actors are killed at the end of a run), that a full disk
+    silences instead of failing: the run's own sentence says which disk is full, and a log line
+    that cannot be written is not worth loguru's traceback on the console."""
+
+    def __init__(self, path: Path) -> None:
+        self.file = open(path, "a", buffering=1, encoding="utf-8")  # noqa: SIM115  # closed by stop()
+
+    def write(self, message: str) -> None:
+        try:
+            self.file.write(message)
+        except OSError as err:
+            if err.errno != errno.ENOSPC:
+                raise
+
+    def stop(self) -> None:
+        with contextlib.suppress(OSError):
+            self.file.close()
 
 
 class _LineLogger(io.TextIOBase):

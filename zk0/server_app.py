@@ -26,7 +26,7 @@ from zk0.aggregation import ValidatingStrategy, array_signature
 from zk0.artifacts import History, new_run_dir, write_json
 from zk0.config import RunConfig, from_run_config
 from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
-from zk0.disk import bytes_needed, check_room, checkpoint_bytes
+from zk0.disk import bytes_needed, check_room, checkpoint_bytes, full_disk_in_one_sentence
 from zk0.errors import Zk0Error
 from zk0.grid import PromptGrid
 from zk0.internals import is_simulation, shorten_object_pull_backoff
@@ -223,8 +223,9 @@ def main(grid: Grid, context: Context) -> None:
         **{SHAPE + key: list(ft.shape) for key, ft in config_features(bundle.policy.config).items() if key in SIZED},
     }
     evaluation = ServerEvaluation(run, bundle, split, run_dir)
+    resume = f"free some space there and resume the run from its last complete checkpoint: resume-from='{run_dir}'."
     try:
-        with stopping.watching():
+        with stopping.watching(), full_disk_in_one_sentence(run_dir, resume):
             strategy.start(
                 grid=PromptGrid(grid, train_deadline_s=run.round_deadline_s),
                 initial_arrays=initial,
