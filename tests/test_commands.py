@@ -18,7 +18,7 @@ def exit_code(call, argv: list[str]) -> int:
 
 
 COMMANDS = ["assets", "check", "certs", "superlink", "supernode"]
-BENCHES = "learning, study, robust, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, hetero, scale"
+BENCHES = "learning, study, robust, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, hetero, scale, soak"
 
 
 def test_the_benchmark_list_is_zk0s():
@@ -99,6 +99,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
             ["hetero", "--slow", "4"],
             "python -m zk0.bench hetero: --slow got 4; expected fewer than --clients (4): someone must be fast; "
             "see python -m zk0.bench hetero --help.",
+        ),
+        (
+            bench,
+            ["soak", "--rounds", "10"],
+            "python -m zk0.bench soak: --from-round got 10; expected a round before the last (10); "
+            "see python -m zk0.bench soak --help.",
         ),
         (
             bench,

@@ -173,8 +173,9 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
 
 
 def marked(doc: str, command: str):
-    """`zk0 assets` of a simulated registry records its demonstrations: the full suite's."""
-    slow = command.startswith("zk0 assets") and "sim" in command
+    """`zk0 assets` of a simulated registry records its demonstrations, and of many owners generates
+    sixteen datasets: the full suite's."""
+    slow = command.startswith("zk0 assets") and ("sim" in command or "owners" in command)
     return pytest.param(doc, command, marks=[pytest.mark.slow] if slow else [], id=f"{doc}:{command[:60]}")
 
 

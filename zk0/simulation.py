@@ -20,8 +20,8 @@ import sys
 import tempfile
 import time
 import urllib.request
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from pathlib import Path
 
 import psutil
@@ -151,13 +151,19 @@ def flwr_run(
 
 
 def run_federation(
-    run_config: str, clients: int, output_dir: Path, name: str, app: Path = PROJECT_ROOT
+    run_config: str,
+    clients: int,
+    output_dir: Path,
+    name: str,
+    app: Path = PROJECT_ROOT,
+    watch: Callable[[dict[str, str]], AbstractContextManager] = lambda env: nullcontext(),
 ) -> dict | None:
     """`flwr run` on a private SuperLink with ``clients`` CPU clients; the run's metric history.
+    ``watch(env)`` is entered while it runs (zk0.bench.scale samples the processes' memory).
 
     For benchmarks: on failure it prints the end of Flower's log and one sentence, and returns None.
     """
-    with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env:
+    with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env, watch(env):
         log = flwr_run(env, f"{run_config} output-dir='{output_dir}'", cpu_federation(clients), app=app)
     runs = sorted(output_dir.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
     if not runs or "Exit Code: " in log:

@@ -15,8 +15,10 @@ from zk0.bench import (
     memory,
     robust,
     round,
+    scale,
     sim,
     sim_learning,
+    soak,
     step,
     study,
 )
@@ -36,6 +38,8 @@ BENCHMARKS = {
     "inputs": inputs,
     "sim-learning": sim_learning,
     "hetero": hetero,
+    "scale": scale,
+    "soak": soak,
 }
 
 

@@ -1,0 +1,114 @@
+"""What a simulated federation's processes hold while it runs: the scale and soak benchmarks' eyes.
+
+``Watch.during(env)`` samples every process under the run's SuperLink every half second: resident
+memory by role (the SuperLink, its SuperExec, the simulation process that runs the ServerApp and
+holds the SuperNodes, each Ray actor running ClientApps, Ray's own daemons), and at the end of
+every round (when its ``server/round_<N>.json`` appears) a row of that moment: memory by role and
+of each client process, open file descriptors and threads of the server side and the clients,
+and the size of the run's output folder.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import psutil
+
+from zk0.simulation import superlink_tree
+
+MIB = 2**20
+# What each process of a simulated federation is, by a word in its command line. flwr-simulation
+# runs the ServerApp and the Simulation Engine, which holds the N SuperNodes; Ray's actors run the ClientApps.
+ROLES = {
+    "ClientAppActor": "client",
+    "flwr-simulation": "simulation",
+    "flower-superexec": "superexec",
+    "flower-superlink": "superlink",
+}
+SERVER_SIDE = ("superlink", "superexec", "simulation")
+
+
+def role_of(process: psutil.Process) -> str:
+    """A process's part in the federation (``ray`` for Ray's own daemons and workers)."""
+    cmdline = " ".join(process.cmdline())
+    return next((role for word, role in ROLES.items() if word in cmdline), "ray")
+
+
+def folder_bytes(folder: Path) -> int:
+    """What the files under ``folder`` take (a file removed while counting is skipped)."""
+    total = 0
+    for path in folder.rglob("*"):
+        try:
+            total += path.stat().st_size if path.is_file() else 0
+        except OSError:
+            continue
+    return total
+
+
+class Watch:
+    """Samples the federation's processes every ``period_s``; a row at the end of every round."""
+
+    def __init__(self, output_dir: Path, period_s: float = 0.5) -> None:
+        self.output_dir, self.period_s = output_dir, period_s
+        self.peak_mib: dict[str, float] = {}  # role -> largest resident set of one sample (summed over its processes)
+        self.client_process_mib = 0.0  # the largest single client process
+        self.recorded_at: dict[int, float] = {}  # round -> seconds after the run started
+        self.rounds: list[dict] = []  # a row at each round's end
+        self.started = time.perf_counter()
+        self._stop = threading.Event()
+
+    @contextmanager
+    def during(self, env: dict[str, str]) -> Iterator[None]:
+        self.started = time.perf_counter()
+        thread = threading.Thread(target=self._sample, args=(env,), daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            self._stop.set()
+            thread.join()
+
+    def _sample(self, env: dict[str, str]) -> None:
+        while not self._stop.wait(self.period_s):
+            processes = []
+            for process in superlink_tree(env):
+                try:
+                    with process.oneshot():
+                        processes.append(
+                            (role_of(process), process.pid, process.memory_info().rss / MIB,
+                             process.num_fds(), process.num_threads())
+                        )  # fmt: skip
+                except psutil.Error:  # ended between the listing and the reading
+                    continue
+            totals: dict[str, float] = {}
+            for role, _, rss, _, _ in processes:
+                totals[role] = totals.get(role, 0.0) + rss
+            totals["server side"] = sum(totals.get(r, 0.0) for r in SERVER_SIDE)
+            for role, total in totals.items():
+                self.peak_mib[role] = max(self.peak_mib.get(role, 0.0), total)
+            clients = {pid: rss for role, pid, rss, _, _ in processes if role == "client"}
+            self.client_process_mib = max(self.client_process_mib, *clients.values(), 0.0)
+            self._note_rounds(totals, clients, processes)
+
+    def _note_rounds(self, totals: dict[str, float], clients: dict[int, float], processes: list[tuple]) -> None:
+        """A row for each round whose JSON has appeared since the last sample."""
+        done = {int(p.stem.removeprefix("round_")) for p in self.output_dir.glob("*/server/round_*.json")}
+        new = sorted(done - set(self.recorded_at))
+        if not new:
+            return
+        now = time.perf_counter() - self.started
+        size = sum(folder_bytes(run) for run in self.output_dir.iterdir() if run.is_dir())
+        for number in new:
+            self.recorded_at[number] = now
+            self.rounds.append({
+                "round": number, "s": now, "mib": dict(totals), "client-processes-mib": {str(p): m for p, m in clients.items()},
+                "server-fds": sum(f for role, _, _, f, _ in processes if role in SERVER_SIDE),
+                "server-threads": sum(t for role, _, _, _, t in processes if role in SERVER_SIDE),
+                "client-fds": sum(f for role, _, _, f, _ in processes if role == "client"),
+                "client-threads": sum(t for role, _, _, _, t in processes if role == "client"),
+                "output-bytes": size,
+            })  # fmt: skip
