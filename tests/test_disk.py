@@ -129,38 +129,26 @@ def test_a_full_disk_leaves_no_half_file_and_reads_as_one_sentence(tmp_path):
 
 
 @pytest.mark.e2e
-def test_a_federation_whose_output_folder_is_too_small_is_refused_before_round_1(tmp_path):
-    """The real `flwr run` with output-dir on a 2 MB filesystem (tmpfs): one sentence naming the
-    folder, what the run needs and what is free; no round, no traceback."""
-    from zk0.simulation import cpu_federation, flwr_run, local_federation
-
-    if os.geteuid() != 0:
-        pytest.skip("mounting a small filesystem (tmpfs) needs root")
-    small = tmp_path / "small"
-    small.mkdir()
-    subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(small)], check=True)
-    try:
-        with local_federation(tmp_path / "flwr-home") as env:
-            log = flwr_run(env, f"output-dir='{small}'", cpu_federation(2, actors=1))
-        (run_dir,) = small.iterdir()
-    finally:
-        subprocess.run(["umount", "--lazy", str(small)], check=False)
-    sentence = f"zk0: {str(run_dir)!r} needs about "
-    assert log.count(sentence) == 1 and "but only 2 MB is free there; free some space" in log, log[-4000:]
-    assert "Exit Code: " in log and "Round 1" not in log and "Traceback" not in log, log[-4000:]
-
-
-@pytest.mark.e2e
-def test_a_disk_that_fills_mid_run_stops_it_in_one_sentence_and_resume_finishes_it(tmp_path):
-    """The output folder's disk fills once round 1's checkpoint is written (another program, say):
-    the run stops with zk0's sentence naming that disk, no traceback; freed, `resume-from` ends it."""
+def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_stops_it_in_one_sentence(tmp_path):
+    """The real `flwr run` with output-dir on a filesystem of its own (tmpfs). At 2 MB: refused before
+    round 1 in one sentence naming the folder, what the run needs and what is free. Made 512 MB and
+    filled by another program once round 1's checkpoint is written: the run stops with zk0's
+    sentence naming that disk, no traceback, no partial file; freed, `resume-from` finishes it."""
     import threading
     import time
 
     from zk0.simulation import cpu_federation, flwr_run, local_federation
 
     config = "num-server-rounds=3 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1"
-    with small_disk(tmp_path / "disk", 512) as disk, local_federation(tmp_path / "flwr-home") as env:
+    with small_disk(tmp_path / "disk", 2) as disk, local_federation(tmp_path / "flwr-home") as env:
+        log = flwr_run(env, f"{config} output-dir='{disk}'", cpu_federation(2, actors=1))
+        (refused,) = disk.iterdir()
+        assert log.count(f"zk0: {str(refused)!r} needs about ") == 1, log[-4000:]
+        assert "but only 2 MB is free there; free some space" in log and "Exit Code: " in log, log[-4000:]
+        assert "Round 1" not in log and "Traceback" not in log, log[-4000:]
+        shutil.rmtree(refused)
+
+        subprocess.run(["mount", "-o", "remount,size=512m", str(disk)], check=True)
 
         def fill_after_round_1() -> None:
             deadline = time.monotonic() + 600

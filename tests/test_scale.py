@@ -20,9 +20,10 @@ def test_a_sixteen_owner_federation_from_one_table_runs_two_rounds_and_is_measur
     assert (tmp_path / "owners-16" / "owners-16.toml").read_text().count("\n") == 3  # the one table
     assert row["owners"] == 16 and row["trained-per-round"] == [4, 4]
     history = json.loads(next((tmp_path / "owners-16").glob("*/server/metrics_history.json")).read_text())
-    assert len(history["clients"]) == 16, "every registered owner is known to the server by its dataset"
+    owners = {str(i): f"synth-owner-{i}" for i in range(16)}
+    assert history["clients"].items() <= owners.items(), "each owner that replied, by its index and dataset"
     trained = {i for r in history["rounds"] for i, c in r["clients"].items() if "train" in c}
-    assert 4 <= len(trained) <= 8 and trained <= {str(i) for i in range(16)}
+    assert 4 <= len(trained) <= 8 and trained <= set(owners)
     assert 0 < row["start-up-s"] < row["flwr-run-s"] and len(row["round-s"]) == 2
     peak = row["peak-mib"]
     assert peak["superlink"] > 0 and peak["simulation"] > 0 and peak["server side"] >= peak["simulation"]
