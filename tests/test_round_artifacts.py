@@ -138,7 +138,8 @@ def test_a_best_round_that_keeps_a_checkpoint_links_models_best_to_its_files(tmp
 
 def test_only_the_newest_checkpoints_are_kept_and_models_best_outlives_its_own(tmp_path, client_parts, registry):
     """keep-checkpoints=2, a checkpoint every round: once round N's is complete, round N-2's goes;
-    models/best, hard links to round 1's files, stays whole when round 1's checkpoint is removed."""
+    models/best, hard links to round 1's files, stays whole when round 1's checkpoint is removed.
+    Rollout videos alike: the newest two and the best round's (the ones the report shows)."""
     from safetensors.torch import load_file
 
     from zk0.artifacts import checkpoints
@@ -149,18 +150,26 @@ def test_only_the_newest_checkpoints_are_kept_and_models_best_outlives_its_own(t
     start = get_trainable(client_parts[0])
     name = next(iter(start))
     rounds = {r: ArrayRecord({n: t + 0.01 * r for n, t in start.to_torch_state_dict().items()}) for r in (1, 2, 3, 4)}
-    artifacts.round_ended(0, start, MetricRecord({"action-mse": 50.0}), {})
-    artifacts.round_ended(1, rounds[1], MetricRecord({"action-mse": 10.0}), {})  # the best, for good
-    artifacts.round_ended(2, rounds[2], MetricRecord({"action-mse": 20.0}), {})
+    videos = tmp_path / "server" / "videos"
+    videos.mkdir(parents=True)
+
+    def ended(r: int, mse: float) -> None:  # with closed-loop evaluation a round leaves its video first
+        (videos / f"round_{r}.mp4").write_bytes(b"video")
+        artifacts.round_ended(r, rounds.get(r, start), MetricRecord({"action-mse": mse}), {})
+
+    ended(0, 50.0)
+    ended(1, 10.0)  # the best, for good
+    ended(2, 20.0)
     assert [r for r, _ in checkpoints(tmp_path)] == [1, 2]
     for r in (3, 4):
-        artifacts.round_ended(r, rounds[r], MetricRecord({"action-mse": 30.0}), {})
+        ended(r, 30.0)
     artifacts.finish_writes()
     assert sorted(p.name for p in (tmp_path / "models").iterdir()) == [
         "best",
         "checkpoint_round_3",
         "checkpoint_round_4",
     ]
+    assert sorted(p.name for p in videos.iterdir()) == ["round_1.mp4", "round_3.mp4", "round_4.mp4"]  # the report's
     best = load_file(tmp_path / "models" / "best" / "model.safetensors")[name]
     assert torch.equal(best, torch.from_numpy(rounds[1][name].numpy()))
 

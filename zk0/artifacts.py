@@ -4,7 +4,8 @@ Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
 
     report.html                    the run on one page, opened from disk (zk0.report)
     server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
-    server/success_rate.png, lifted_rate.png, videos/round_<N>.mp4   with closed-loop evaluation (zk0.sim)
+    server/success_rate.png, lifted_rate.png, videos/round_<N>.mp4   with closed-loop evaluation (zk0.sim;
+                                   the newest keep-checkpoints and the best round's)
     clients/client_<i>/client.log (written by the client), round_<N>.json
     models/checkpoint_round_<N>/   a lerobot pretrained-model directory (LoRA: merged, adapter/ beside)
     models/best/                   the same, of the best round (round 0 included): the highest success
@@ -185,6 +186,7 @@ def _line(ax, points: list[tuple[int, float | None]], label: str, style: str, wi
 
 ROUND_FILE = "zk0_round.json"  # in every checkpoint: the round it holds and the server's evaluation of it
 CHECKPOINT = re.compile(r"checkpoint_round_(\d+)")
+VIDEO = re.compile(r"round_(\d+)\.mp4")
 SERVER_STATE_FILE = "server_optimiser.safetensors"  # in every checkpoint: the server optimiser's state
 
 
@@ -251,6 +253,19 @@ def prune_checkpoints(run_dir: Path, keep: int) -> list[int]:
     for _, folder in old:
         shutil.rmtree(folder)
     return [number for number, _ in old]
+
+
+def prune_videos(run_dir: Path, keep: int, best: int | None) -> None:
+    """Keep the newest ``keep`` closed-loop videos (0: every one) and the best round's: the two the
+    report shows. A video a round is megabytes; a week-long run evaluates hundreds of rounds."""
+    videos = sorted(
+        (int(m.group(1)), p)
+        for p in (run_dir / "server" / "videos").glob("round_*.mp4")
+        if (m := VIDEO.fullmatch(p.name))
+    )
+    for number, path in videos[:-keep] if keep else []:
+        if number != best:
+            path.unlink()
 
 
 def link_checkpoint(checkpoint: Path, name: str) -> Path:

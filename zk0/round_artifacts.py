@@ -29,7 +29,15 @@ from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0 import stopping
-from zk0.artifacts import ROUND_FILE, History, clients_trained, link_checkpoint, prune_checkpoints, save_checkpoint
+from zk0.artifacts import (
+    ROUND_FILE,
+    History,
+    clients_trained,
+    link_checkpoint,
+    prune_checkpoints,
+    prune_videos,
+    save_checkpoint,
+)
 from zk0.config import RunConfig
 from zk0.hub import can_push, publish
 from zk0.logs import say
@@ -157,6 +165,7 @@ class RoundArtifacts:
                 self.save(self.best["round"], *self.unsaved, "best")
                 self.unsaved = None
         self.history.add(server_round, "best", self.best)
+        prune_videos(self.history.run_dir, self.run.keep_checkpoints, self.best["round"] if self.best else None)
         self.history.add(server_round, "wall-s", time.perf_counter() - self.started)
         self.history.write_round(server_round)
         write_report(
