@@ -85,6 +85,35 @@ def test_a_process_keeps_the_sessions_of_its_four_latest_nodes(tmp_path, isolate
     assert not client._SESSIONS
 
 
+def test_the_time_budget_counts_the_evaluation_the_train_message_carries(tmp_path, isolated_logging):
+    """``local-time-s`` bounds a client's whole answer: the training gets what the evaluation of
+    the received model (asked for with the train message) left of it, so a slow owner's round
+    lasts about the budget, not the budget plus its evaluation."""
+    from flwr.app import ConfigRecord, Context, RecordDict
+
+    from zk0 import app_fingerprint, client
+    from zk0.policy import trainable_tensors
+    from zk0.wire import EVALUATE_ROUND, EVALUATION, encode
+
+    budget = 3600.0
+    run_config = {"batch-size": 2, "output-dir": str(tmp_path), "local-steps": 2, "local-time-s": budget}
+    context = Context(run_id=1, node_id=1, node_config={"partition-id": 0}, state=RecordDict(), run_config=run_config)
+    config = {"run-name": "2026-01-01_00-00-00", "server-round": 2, "proximal-mu": 0.0, EVALUATE_ROUND: 1}
+    client.release_sessions()
+    try:
+        session, _ = client.session_for(context, ConfigRecord(config))
+        config |= {"app-fingerprint": app_fingerprint(), "backbone-fingerprint": session.fingerprint}
+        arrays = encode(trainable_tensors(session.bundle), session.run.wire_dtype)
+        reply = client.handle("train", RecordDict({"config": ConfigRecord(config), "arrays": arrays}), context)
+    finally:
+        client.release_sessions()
+    metrics = next(iter(reply.metric_records.values()))
+    assert "action-mse" in reply[EVALUATION] and metrics["local-steps"] == 2
+    assert 0 < metrics["evaluate-s"] <= budget - metrics["budget-s"] < metrics["handler-s"]
+    assert client.training_budget(0.0, 5.0) == 0.0  # no budget stays none
+    assert 0 < client.training_budget(10.0, 12.0) < 1e-6  # a budget spent on evaluating still trains a step
+
+
 def test_a_run_name_that_is_a_path_is_refused():
     from zk0.client import client_log
     from zk0.config import ConfigError

@@ -221,14 +221,17 @@ def state_folder(session: ClientSession, context: Context, config: ConfigRecord)
     return log.parent / "trainer_state"
 
 
-def _train(session: ClientSession, content: RecordDict, context: Context, keep_optimizer: bool) -> RecordDict:
+def _train(
+    session: ClientSession, content: RecordDict, context: Context, keep_optimizer: bool, began: float
+) -> RecordDict:
     """Evaluate the received model first when the server asks (it is the previous round's), then train."""
     config = content["config"]
     server_round = int(config["server-round"])
     run = session.run
     evaluation = _evaluate_before_training(session, content, context) if int(config.get(EVALUATE_ROUND, 0)) else None
     first_step = (server_round - 1) * run.local_steps  # the round's place on the schedule, whatever it takes
-    metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), first_step, run.local_time_s)
+    budget = training_budget(run.local_time_s, time.perf_counter() - began)
+    metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), first_step, budget)
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
     if keep_optimizer:
         context.state[OPTIMIZER] = session.trainer.optimizer_record()
@@ -244,6 +247,7 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
                     **metrics,
                     "update-bytes": update.count_bytes(),
                     "evaluate-s": float(evaluation.get("eval-s", 0.0)) if evaluation else 0.0,
+                    "budget-s": budget,
                 }
             ),
             "stats": stats_to_record(session.bundle.stats),
@@ -253,6 +257,16 @@ def _train(session: ClientSession, content: RecordDict, context: Context, keep_o
     if evaluation:
         reply[EVALUATION] = ConfigRecord(dict(evaluation))  # one MetricRecord per reply, as Flower requires
     return reply
+
+
+def training_budget(local_time_s: float, spent_s: float) -> float:
+    """The seconds left to train of a round's ``local-time-s`` (0 = no budget) once ``spent_s`` went
+    on the message's other work: the evaluation it carries and catching up. The budget bounds the
+    client's whole answer, so a round lasts about the budget however long evaluating takes on a
+    slow machine; training still takes at least one step (``LocalTrainer.fit``)."""
+    if not local_time_s:
+        return 0.0
+    return max(local_time_s - spent_s, 1e-9)
 
 
 def _evaluate_before_training(session: ClientSession, content: RecordDict, context: Context) -> dict:
@@ -307,6 +321,7 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
     _FRESH_PROCESS = False
     share_this_machine()
     session, build = session_for(context, content["config"])
+    began = time.perf_counter()  # local-time-s counts from here: a client is built once, in round 1
     mine = client_log(dict(context.node_config), session.run, str(content["config"]["run-name"]), session.index).parent
     with (
         logger.contextualize(party=session.party),
@@ -317,7 +332,7 @@ def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: boo
         set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
         restore = _catch_up(session, context, content["config"]) if kind == "train" else 0.0
         reply = (
-            _train(session, content, context, keep_optimizer)
+            _train(session, content, context, keep_optimizer, began)
             if kind == "train"
             else _evaluate(session, content, context)
         )

@@ -61,9 +61,17 @@ def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
         who: statistics.mean(t["step-time"] for i, t in trained if (i in slow) == (who == "slow"))
         for who in ("slow", "others")
     }
+    later = [r for r in rounds if r["round"] >= 2]
     return {
         "steady-round-s": steady,
         "mean-steady-round-s": statistics.mean(steady),
+        # where a steady round goes: the slowest client's whole answer (its evaluation, catching up
+        # and training) and the server's evaluation; the rest is transfers, averaging and artifacts
+        "mean-slowest-client-s": statistics.mean(
+            max((c["train"].get("handler-s", 0.0) for c in r["clients"].values() if "train" in c), default=0.0)
+            for r in later
+        ),
+        "mean-server-evaluate-s": statistics.mean(r.get("server-evaluate", {}).get("eval-s", 0.0) for r in later),
         "round-vs-budget": statistics.mean(steady) / budget if budget else None,
         "longest-round-s": max(steady),
         "late": {str(r["round"]): r["late"]["clients"] for r in rounds if r.get("late")},
@@ -150,6 +158,8 @@ def report(figures: dict, args) -> None:
         print(f"{label:<16}{f['mean-steady-round-s']:>9.1f}{f['longest-round-s']:>9.1f}{ratio:>10}"
               f"{f['slow-owner-step-slowdown']:>10.1f}x{f['slow-owner-share-of-steps']:>12.1%}"
               f"{f['mse-by-wall'][-1][1]:>11.4g}{f['wall-s']:>8.0f}")  # fmt: skip
+        print(f"{'':<16}a round: the slowest client's answer {f['mean-slowest-client-s']:.1f} s, "
+              f"the server's evaluation {f['mean-server-evaluate-s']:.1f} s")  # fmt: skip
         for round_number, late in f["late"].items():
             print(f"  round {round_number}: late, dropped: {', '.join(f'client {i}' for i in late)}")
     for label in list(RUNS)[1:]:
