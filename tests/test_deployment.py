@@ -155,7 +155,7 @@ def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federat
 
 
 def test_with_a_time_budget_a_throttled_owner_takes_fewer_steps_and_is_named(federation):
-    """robot-2's SuperNode held to a fifth of the CPU (zk0.bench.throttle): with local-time-s
+    """robot-2's SuperNode held to a fifth of the CPU from round 2 (zk0.bench.throttle): with local-time-s
     each round lasts about the budget, robot-2 takes fewer steps than robot-1 and is named on the
     console, and the server averages the two with FedNova's normalisation."""
     from zk0.bench.throttle import Throttle
@@ -163,17 +163,50 @@ def test_with_a_time_budget_a_throttled_owner_takes_fewer_steps_and_is_named(fed
     out = federation.root / "outputs-budget"
     config = "num-server-rounds=3 local-steps=400 local-time-s=2 averaging='fednova' batch-size=4 eval-batches=1"
     config += " eval-frequency=3"
+    run = subprocess.Popen(
+        [tool("flwr"), "run", str(PROJECT_ROOT), "lan", "--stream", "--run-config", f"{config} output-dir='{out}'"],
+        env=federation.env, cwd=PROJECT_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    deadline = time.monotonic() + 300
+    while not list(out.glob("*/server/round_1.json")):  # round 1 builds the clients: held, that takes minutes
+        assert run.poll() is None and time.monotonic() < deadline
+        time.sleep(0.2)
     with Throttle(federation.root / "robot-2", share=0.2):
-        done = federation.run_app(f"{config} output-dir='{out}'", timeout=600)
+        log, _ = run.communicate(timeout=600)
     run_dir, record = history(out)
-    assert [r["round"] for r in record["rounds"]] == [0, 1, 2, 3], done.stdout[-3000:]
+    assert [r["round"] for r in record["rounds"]] == [0, 1, 2, 3], log[-3000:]
     for r in (2, 3):  # round 1 also builds each client: its first steps are the slowest
         steps = {int(i): c["train"]["local-steps"] for i, c in record["rounds"][r]["clients"].items()}
         assert 1 <= steps[1] < steps[0] / 2 and steps[0] < 400, steps
         line = f"Round {r}/3: 2 clients trained, {steps[1]}-{steps[0]} of 400 steps, stragglers: client 1 ({steps[1]} "
-        assert line in done.stdout, done.stdout[-3000:]
+        assert line in log, log[-3000:]
     server_log = (run_dir / "server" / "server.log").read_text()
     assert "local steps; averaged with FedNova" in server_log
+
+
+def test_a_supernode_whose_disk_is_full_says_so_on_its_console_and_the_run_goes_on(federation):
+    """robot-1's output folder on a full filesystem of its own (tmpfs): each train message that must
+    keep robot-1's training state fails with zk0's sentence naming that disk, on robot-1's console,
+    without a traceback; the server names the client and finishes the run with robot-2."""
+    from tests.test_disk import fill, small_disk
+
+    out = federation.root / "outputs-full"
+    config = "num-server-rounds=1 local-steps=2 batch-size=4 eval-batches=1 min-train-clients=1"
+    before = len(federation.log("robot-1"))
+    with small_disk(federation.root / "robot-1" / "outputs", 1) as disk:
+        fill(disk)
+        done = federation.run_app(f"{config} output-dir='{out}'", timeout=600)
+        console = federation.log("robot-1")[before:]
+    run_dir, record = history(out)
+    assert [r["round"] for r in record["rounds"]] == [0, 1], done.stdout[-3000:]
+    trained = {i for i, c in record["rounds"][1]["clients"].items() if "train" in c}
+    assert trained == {"1"}, "robot-2 trained, robot-1 could not"
+    said = [line for line in console.splitlines() if "zk0: Client 0 (synth-so100-pickplace): The disk holding" in line]
+    assert len(said) == 1 and "Traceback" not in console, console[-3000:]
+    assert all(f"{repr(str(disk))[:-1]}" in line and "is full (0 MB free); free some space" in line for line in said)
+    server_log = (run_dir / "server" / "server.log").read_text()
+    assert server_log.count("Client 0 (synth-so100-pickplace): The disk holding") == 1, server_log[-3000:]
+    assert "no usable update" not in server_log, "a client that said why is not named a second time"
 
 
 def test_a_supernode_killed_during_round_2_is_named_and_the_run_completes(federation):

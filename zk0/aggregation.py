@@ -197,11 +197,13 @@ class ValidatingStrategy(Strategy):
             config = ConfigRecord({**msg.content[inner.configrecord_key], EVALUATE_ROUND: previous})
             msg.content = RecordDict({**msg.content, inner.configrecord_key: config})
 
-    def _log_missing(self, server_round: int, valid: list[Message]) -> None:
-        """Name every sampled node whose update did not arrive (crashed, offline, rejected)."""
-        for node in sorted(self.sampled - {msg.metadata.src_node_id for msg in valid}):
+    def _log_missing(self, server_round: int, valid: list[Message], replies: list[Message]) -> None:
+        """Name every sampled node whose update did not arrive (crashed, offline, rejected); a node
+        that replied with an error was named with its reason already."""
+        failed = {msg.metadata.src_node_id for msg in replies if msg.has_error()}
+        for node in sorted(self.sampled - {msg.metadata.src_node_id for msg in valid} - failed):
             client = self.node_clients.get(node)
-            who = f"client {client}" if client is not None else "a client that has not replied yet"
+            who = f"client {client}" if client is not None else "a client that has sent no update yet"
             logger.warning(
                 "Round {}: no usable update from node {} ({}); aggregating the others.", server_round, node, who
             )
@@ -256,7 +258,7 @@ class ValidatingStrategy(Strategy):
         server_round += self.round_offset
         replies = list(replies)
         valid = self.valid_updates(server_round, replies)
-        self._log_missing(server_round, valid)
+        self._log_missing(server_round, valid, replies)
         self._record_late(server_round, replies)
         self._record_evaluation(server_round - 1, valid)
         if len(valid) < self.inner.min_train_nodes and server_round == self.round_offset + 1:
