@@ -21,6 +21,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import psutil
+
 from zk0.certs import make_federation_certs
 from zk0.registry import PROJECT_ROOT
 from zk0.simulation import free_port
@@ -107,6 +109,15 @@ class LoopbackFederation:
             proc.wait(timeout=20)
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)
+
+    def process_tree(self) -> list[psutil.Process]:
+        """Every process of this federation now: each one this object started and all under it."""
+        tree = []
+        for proc in self.processes.values():
+            with contextlib.suppress(psutil.Error):
+                parent = psutil.Process(proc.pid)
+                tree += [parent, *parent.children(recursive=True)]
+        return tree
 
     def stop_all(self) -> None:
         for name in reversed(list(self.processes)):

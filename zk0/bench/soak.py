@@ -1,21 +1,24 @@
 """Soak benchmark: does a long run stay flat? Memory, open files, threads and disk over many rounds.
 
-One simulated federation of ``--rounds`` rounds (the tiny model, ``--clients`` clients, a few local
-steps, a checkpoint every ``--checkpoint-interval`` rounds with ``keep-checkpoints``' default), run
-with ``flwr run`` as a user runs it, watched from outside (zk0.bench.watch): at the end of every
-round the server side's resident memory (the SuperLink, its SuperExec, the simulation process that
-runs the ServerApp), each client process's, their open file descriptors and threads, and the
+One federation of ``--rounds`` rounds (the tiny model, ``--clients`` clients, a few local steps, a
+checkpoint every ``--checkpoint-interval`` rounds with ``keep-checkpoints``' default), run with
+``flwr run`` as a user runs it: in simulation, or with ``--deployment`` on a loopback Deployment
+Engine (zk0.loopback: a TLS SuperLink and one ``zk0 supernode`` per client). Watched from outside
+(zk0.bench.watch): at the end of every round the server side's resident memory (the SuperLink, its
+SuperExec, the process that runs the ServerApp), each client process's (a Ray actor, or a
+SuperNode's warm worker), the SuperNodes' own, their open file descriptors and threads, and the
 output folder's size. Reported: each one's growth from round ``--from-round`` (after start-up and
 the first checkpoints) to the last, against the targets (memory under 5%, descriptors and threads
 not growing, the folder flat once the kept checkpoints are there); JSON and a chart.
 
     python -m zk0.bench soak [--rounds 200] [--clients 2] [--local-steps 2] [--checkpoint-interval 10]
-        [--from-round 10] [--output-dir outputs/bench-soak] [--json FILE] [--chart FILE]
+        [--from-round 10] [--deployment] [--output-dir outputs/bench-soak] [--json FILE] [--chart FILE]
 """
 
 from __future__ import annotations
 
 import sys
+import tempfile
 from pathlib import Path
 
 from matplotlib.figure import Figure
@@ -23,6 +26,8 @@ from matplotlib.figure import Figure
 from zk0.bench.client import write_json
 from zk0.bench.watch import Watch
 from zk0.errors import OneSentenceParser, positive
+from zk0.loopback import loopback_federation
+from zk0.registry import load_registry
 from zk0.simulation import run_federation
 
 
@@ -35,6 +40,11 @@ def growth(rows: list[dict], start: int) -> dict:
         "from-round": first["round"],
         "to-round": last["round"],
         "server-side-memory": last["mib"]["server side"] / first["mib"]["server side"] - 1,
+        **(
+            {"supernode-memory": last["mib"]["supernode"] / first["mib"]["supernode"] - 1}
+            if "supernode" in first["mib"] and "supernode" in last["mib"]
+            else {}
+        ),
         "client-process-memory": {
             pid: last["client-processes-mib"][pid] / first["client-processes-mib"][pid] - 1 for pid in clients
         },
@@ -72,6 +82,7 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument("--local-steps", type=positive(int), default=2)
     parser.add_argument("--checkpoint-interval", type=positive(int), default=10)
     parser.add_argument("--from-round", type=positive(int), default=10, help="growth is measured from this round")
+    parser.add_argument("--deployment", action="store_true", help="on a loopback Deployment Engine, a SuperNode each")
     parser.add_argument("--output-dir", default="outputs/bench-soak")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     parser.add_argument("--chart", help="the PNG chart (default: <output-dir>/soak.png)")
@@ -90,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         f"checkpoint-interval={args.checkpoint_interval} min-train-clients={args.clients}"
     )
     watch = Watch(out)
-    if run_federation(run_config, args.clients, out, "bench.soak", watch=watch.during) is None:
+    run = deployed if args.deployment else simulated
+    if not run(run_config, args.clients, out, watch):
         return 1
     figures = {"settings": vars(args), "rounds": watch.rounds, "growth": growth(watch.rounds, args.from_round)}
     report(figures["growth"], watch.rounds)
@@ -99,11 +111,29 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def simulated(run_config: str, clients: int, out: Path, watch: Watch) -> bool:
+    """The run in the Simulation Engine, as ``./train.sh`` runs it."""
+    return run_federation(run_config, clients, out, "bench.soak", watch=watch.during) is not None
+
+
+def deployed(run_config: str, clients: int, out: Path, watch: Watch) -> bool:
+    """The run on a loopback Deployment Engine, a SuperNode (and its warm worker) per client."""
+    supernodes = {f"robot-{i}": entry.name for i, entry in enumerate(load_registry().clients[:clients])}
+    with (
+        tempfile.TemporaryDirectory(prefix="zk0-bench-soak-") as tmp,
+        loopback_federation(Path(tmp), supernodes) as fed,
+    ):
+        with watch.around(fed.process_tree):
+            return fed.run_history(run_config, out, "bench.soak", timeout=24 * 3600) is not None
+
+
 def report(g: dict, rows: list[dict]) -> None:
     """Each figure against its target."""
     last = rows[-1]
     print(f"\nrounds {g['from-round']} -> {g['to-round']} ({last['s']:.0f} s in all):")
     print(f"  server side memory {last['mib']['server side']:.0f} MiB: {g['server-side-memory']:+.1%} (target < +5%)")
+    if "supernode-memory" in g:
+        print(f"  SuperNodes {last['mib']['supernode']:.0f} MiB: {g['supernode-memory']:+.1%} (target < +5%)")
     for pid, change in g["client-process-memory"].items():
         print(f"  client process {pid} {last['client-processes-mib'][pid]:.0f} MiB: {change:+.1%} (target < +5%)")
     print(f"  open files: server side {g['server-fds']:+d}, clients {g['client-fds']:+d}; threads: server side "

@@ -1,18 +1,20 @@
-"""What a simulated federation's processes hold while it runs: the scale and soak benchmarks' eyes.
+"""What a federation's processes hold while it runs: the scale and soak benchmarks' eyes.
 
-``Watch.during(env)`` samples every process under the run's SuperLink every half second: resident
-memory by role (the SuperLink, its SuperExec, the simulation process that runs the ServerApp and
-holds the SuperNodes, each Ray actor running ClientApps, Ray's own daemons), and at the end of
-every round (when its ``server/round_<N>.json`` appears) a row of that moment: memory by role and
-of each client process, open file descriptors and threads of the server side and the clients,
-and the size of the run's output folder.
+``Watch.during(env)`` samples every process under a simulation's SuperLink every half second:
+resident memory by role (the SuperLink, its SuperExec, the simulation process that runs the
+ServerApp and holds the SuperNodes, each Ray actor running ClientApps, Ray's own daemons).
+``Watch.around(processes)`` does the same for a Deployment Engine federation's process trees
+(the SuperLink with its ServerApp process, each SuperNode with its warm worker). At the end of
+every round (when its ``server/round_<N>.json`` appears) it keeps a row of that moment: memory by
+role and of each client process, open file descriptors and threads of the server side and the
+clients, and the size of the run's output folder.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -21,21 +23,31 @@ import psutil
 from zk0.simulation import superlink_tree
 
 MIB = 2**20
-# What each process of a simulated federation is, by a word in its command line. flwr-simulation
-# runs the ServerApp and the Simulation Engine, which holds the N SuperNodes; Ray's actors run the ClientApps.
+# What each process of a federation is, by a word in its command line (the first that matches).
+# In simulation flwr-simulation runs the ServerApp and the Simulation Engine, which holds the N
+# SuperNodes, and Ray's actors run the ClientApps. In a deployment flwr-serverapp runs the ServerApp
+# and each SuperNode's warm worker (zk0.worker) keeps its client; a SuperNode's own processes (its
+# SuperExec, fork server and the ClientApp process relaying each message) are "supernode".
 ROLES = {
     "ClientAppActor": "client",
+    "zk0.worker": "client",
     "flwr-simulation": "simulation",
+    "flwr-serverapp": "serverapp",
+    "zk0.supernode": "supernode",
+    "zk0.superexec": "supernode",
+    "zk0.forkserver": "supernode",
+    "flwr-clientapp": "supernode",
     "flower-superexec": "superexec",
     "flower-superlink": "superlink",
 }
-SERVER_SIDE = ("superlink", "superexec", "simulation")
+SERVER_SIDE = ("superlink", "superexec", "simulation", "serverapp")
 
 
 def role_of(process: psutil.Process) -> str:
-    """A process's part in the federation (``ray`` for Ray's own daemons and workers)."""
+    """A process's part in the federation (``ray`` for Ray's own daemons and workers, ``other`` for
+    what is none of these, such as the ``zk0`` command that started a SuperLink or SuperNode)."""
     cmdline = " ".join(process.cmdline())
-    return next((role for word, role in ROLES.items() if word in cmdline), "ray")
+    return next((role for word, role in ROLES.items() if word in cmdline), "ray" if "ray" in cmdline else "other")
 
 
 def folder_bytes(folder: Path) -> int:
@@ -61,10 +73,15 @@ class Watch:
         self.started = time.perf_counter()
         self._stop = threading.Event()
 
+    def during(self, env: dict[str, str]):
+        """Watch the simulation whose SuperLink runs with ``env`` (``run_federation``'s ``watch``)."""
+        return self.around(lambda: superlink_tree(env))
+
     @contextmanager
-    def during(self, env: dict[str, str]) -> Iterator[None]:
+    def around(self, processes: Callable[[], list[psutil.Process]]) -> Iterator[None]:
+        """Watch what ``processes()`` lists at each sample (the federation's processes now)."""
         self.started = time.perf_counter()
-        thread = threading.Thread(target=self._sample, args=(env,), daemon=True)
+        thread = threading.Thread(target=self._sample, args=(processes,), daemon=True)
         thread.start()
         try:
             yield
@@ -72,10 +89,10 @@ class Watch:
             self._stop.set()
             thread.join()
 
-    def _sample(self, env: dict[str, str]) -> None:
+    def _sample(self, listed: Callable[[], list[psutil.Process]]) -> None:
         while not self._stop.wait(self.period_s):
             processes = []
-            for process in superlink_tree(env):
+            for process in listed():
                 try:
                     with process.oneshot():
                         processes.append(
