@@ -87,8 +87,11 @@ def test_a_process_keeps_the_sessions_of_its_four_latest_nodes(tmp_path, isolate
 
 def test_the_time_budget_counts_the_evaluation_the_train_message_carries(tmp_path, isolated_logging):
     """``local-time-s`` bounds a client's whole answer: the training gets what the evaluation of
-    the received model (asked for with the train message) left of it, so a slow owner's round
+    the received model (asked for with the train message) and the time since the message reached
+    the machine (a warm worker's ClientApp process starting) left of it, so a slow owner's round
     lasts about the budget, not the budget plus its evaluation."""
+    import time
+
     from flwr.app import ConfigRecord, Context, RecordDict
 
     from zk0 import app_fingerprint, client
@@ -104,12 +107,16 @@ def test_the_time_budget_counts_the_evaluation_the_train_message_carries(tmp_pat
         session, _ = client.session_for(context, ConfigRecord(config))
         config |= {"app-fingerprint": app_fingerprint(), "backbone-fingerprint": session.fingerprint}
         arrays = encode(trainable_tensors(session.bundle), session.run.wire_dtype)
-        reply = client.handle("train", RecordDict({"config": ConfigRecord(config), "arrays": arrays}), context)
+        message = RecordDict({"config": ConfigRecord(config), "arrays": arrays})
+        reply = client.handle("train", message, context)
+        arrived = client.handle("train", message, context, arrived=time.time() - 60)  # a minute ago
     finally:
         client.release_sessions()
     metrics = next(iter(reply.metric_records.values()))
     assert "action-mse" in reply[EVALUATION] and metrics["local-steps"] == 2
     assert 0 < metrics["evaluate-s"] <= budget - metrics["budget-s"] < metrics["handler-s"]
+    late = next(iter(arrived.metric_records.values()))
+    assert 60 + late["evaluate-s"] <= budget - late["budget-s"] < 60 + late["handler-s"]
     assert client.training_budget(0.0, 5.0) == 0.0  # no budget stays none
     assert 0 < client.training_budget(10.0, 12.0) < 1e-6  # a budget spent on evaluating still trains a step
 

@@ -309,19 +309,25 @@ def share_this_machine() -> None:
         torch.set_num_threads(cpus)
 
 
-def handle(kind: str, content: RecordDict, context: Context, keep_optimizer: bool = True) -> RecordDict:
+def handle(
+    kind: str, content: RecordDict, context: Context, keep_optimizer: bool = True, arrived: float | None = None
+) -> RecordDict:
     """Answer one ``train`` or ``evaluate`` message for this node; ``context.state`` is updated in place.
 
     ``keep_optimizer`` puts the optimizer's state in ``Context.state`` (a one-message process
     needs it there; a warm worker keeps it in memory instead of copying ~800 MB a round).
+    ``arrived`` is when the message reached this machine (Unix time; None: now): a warm worker's
+    message first starts a ClientApp process, which on a slow machine takes a second or more of
+    the round that ``local-time-s`` bounds.
     """
     global _FRESH_PROCESS
+    waited = max(time.time() - arrived, 0.0) if arrived else 0.0
     started = time.perf_counter()
     startup = time.time() - psutil.Process().create_time() if _FRESH_PROCESS else 0.0
     _FRESH_PROCESS = False
     share_this_machine()
     session, build = session_for(context, content["config"])
-    began = time.perf_counter()  # local-time-s counts from here: a client is built once, in round 1
+    began = time.perf_counter() - waited  # local-time-s counts from here: a client is built once, in round 1
     mine = client_log(dict(context.node_config), session.run, str(content["config"]["run-name"]), session.index).parent
     with (
         logger.contextualize(party=session.party),

@@ -47,7 +47,7 @@ def _handle(kind: str, msg: Message, context: Context) -> RecordDict:
     if worker.enabled(context.node_config):
         started, age = time.perf_counter(), _process_age()
         try:
-            reply, worker_s = worker.call(kind, msg.content, context)
+            reply, worker_s = worker.call(kind, msg.content, context, arrived=time.time() - age)
         except worker.WorkerUnavailable as err:
             logger.warning("{}; handling this message in the ClientApp process instead.", err)
         else:

@@ -111,17 +111,29 @@ class LoopbackFederation:
             os.killpg(proc.pid, signal.SIGKILL)
 
     def process_tree(self) -> list[psutil.Process]:
-        """Every process of this federation now: each one this object started and all under it."""
+        """Every process of this federation now: each one this object started, all under it, and
+        the SuperNodes' warm workers (started by a one-message ClientApp process in a session of
+        their own, they outlive it and leave the tree; each names its SuperNode's process)."""
         tree = []
         for proc in self.processes.values():
             with contextlib.suppress(psutil.Error):
                 parent = psutil.Process(proc.pid)
                 tree += [parent, *parent.children(recursive=True)]
-        return tree
+        return tree + warm_workers_of({p.pid for p in tree})
 
     def stop_all(self) -> None:
         for name in reversed(list(self.processes)):
             self.stop(name)
+
+
+def warm_workers_of(pids: set[int]) -> list[psutil.Process]:
+    """The ``zk0.worker`` processes serving a SuperNode among ``pids`` (its pid ends their command)."""
+    workers = []
+    for proc in psutil.process_iter(["cmdline"]):
+        cmdline = proc.info["cmdline"] or []
+        if "zk0.worker" in cmdline and cmdline[-1].isdigit() and int(cmdline[-1]) in pids:
+            workers.append(proc)
+    return workers
 
 
 @contextlib.contextmanager

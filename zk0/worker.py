@@ -109,8 +109,9 @@ def _recv_exact(sock: socket.socket, size: int) -> bytearray:
 
 
 # The proxy's side (the flwr-clientapp process).
-def call(kind: str, content: RecordDict, context: Context) -> tuple[RecordDict, float]:
-    """Have this run's worker answer one message; ``context.state`` takes the worker's update.
+def call(kind: str, content: RecordDict, context: Context, arrived: float) -> tuple[RecordDict, float]:
+    """Have this run's worker answer one message that reached this machine at ``arrived`` (Unix
+    time: its ClientApp process's start); ``context.state`` takes the worker's update.
 
     Returns the reply and the seconds the worker spent on it. A ``Zk0Error`` in the worker comes
     back as the same one sentence; ``WorkerUnavailable`` means the caller should work in-process.
@@ -118,7 +119,7 @@ def call(kind: str, content: RecordDict, context: Context) -> tuple[RecordDict, 
     path = socket_path(context.run_id, context.node_id)  # before the try: it raises WorkerUnavailable itself
     with _connect(path) as sock:
         try:
-            header = json.dumps({"kind": kind}).encode()
+            header = json.dumps({"kind": kind, "arrived": arrived}).encode()
             _send(sock, header, context_to_proto(context).SerializeToString())
             _send_records(sock, content)
             status = json.loads(_recv(sock))
@@ -216,7 +217,7 @@ def _answer(conn: socket.socket, client) -> bool:
     content = _recv_records(conn)
     started = time.perf_counter()
     try:
-        reply = client.handle(header["kind"], content, context, keep_optimizer=False)
+        reply = client.handle(header["kind"], content, context, keep_optimizer=False, arrived=header["arrived"])
     except Exception as err:  # sent to the proxy, which raises it in the ClientApp as Flower expects
         user = isinstance(err, Zk0Error)
         if not user:

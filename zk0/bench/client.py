@@ -93,4 +93,5 @@ def bench_client(
 
 def write_json(path: str | None, figures: dict) -> None:
     if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(figures, indent=2))

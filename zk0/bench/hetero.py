@@ -7,7 +7,8 @@ duty-cycling, as cpulimit does). Three runs on it, one after another: every clie
 ``--local-steps`` a round (today's default: each round waits for the slow owners), and
 ``local-time-s = --budget`` (with ``round-deadline-s = --deadline``) averaged with FedNova's
 normalisation and with plain sample weighting. For each: the wall time of every round after the
-first (which builds the clients), its ratio to the budget, the slow owners' step time against the
+first (which builds the clients) and before the last (which evaluates every client in a message
+of its own, and checkpoints), its ratio to the budget, the slow owners' step time against the
 others' (how slow the throttle made them, measured) and their share of the steps, the clients
 each round named as stragglers or late, and the server's action MSE per round, compared at equal
 wall time (counted from the end of round 1, which builds every client): each budget run's final
@@ -52,7 +53,8 @@ def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
     """A run's round walls, the slow owners' measured slowness and share of steps, MSE by wall time."""
     rounds = history["rounds"]
     walls = {r["round"]: r["wall-s"] for r in rounds}
-    steady = [walls[r] - walls[r - 1] for r in range(2, max(walls) + 1)]
+    last = max(walls)  # its own evaluate message (every client's final evaluation) and the checkpoint
+    steady = [walls[r] - walls[r - 1] for r in range(2, last)]
     trained = [
         (int(i), c["train"]) for r in rounds[2:] for i, c in r["clients"].items() if "local-steps" in c.get("train", {})
     ]
@@ -61,19 +63,18 @@ def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
         who: statistics.mean(t["step-time"] for i, t in trained if (i in slow) == (who == "slow"))
         for who in ("slow", "others")
     }
-    later = [r for r in rounds if r["round"] >= 2]
+    later = [r for r in rounds if 2 <= r["round"] < last]
     return {
         "steady-round-s": steady,
         "mean-steady-round-s": statistics.mean(steady),
         # where a steady round goes: the slowest client's whole answer (its evaluation, catching up
         # and training) and the server's evaluation; the rest is transfers, averaging and artifacts
-        "mean-slowest-client-s": statistics.mean(
-            max((c["train"].get("handler-s", 0.0) for c in r["clients"].values() if "train" in c), default=0.0)
-            for r in later
-        ),
+        "mean-slowest-client-s": statistics.mean(slowest(r)["handler-s"] for r in later),
+        "mean-slowest-client-startup-s": statistics.mean(slowest(r).get("startup-s", 0.0) for r in later),
         "mean-server-evaluate-s": statistics.mean(r.get("server-evaluate", {}).get("eval-s", 0.0) for r in later),
         "round-vs-budget": statistics.mean(steady) / budget if budget else None,
         "longest-round-s": max(steady),
+        "last-round-s": walls[last] - walls[last - 1],
         "late": {str(r["round"]): r["late"]["clients"] for r in rounds if r.get("late")},
         "slow-owner-step-slowdown": step_time["slow"] / step_time["others"],
         "slow-owner-share-of-steps": slow_steps / sum(t["local-steps"] for _, t in trained),
@@ -89,6 +90,12 @@ def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
         ],
         "wall-s": walls[max(walls)],
     }
+
+
+def slowest(round_row: dict) -> dict:
+    """The train metrics of the round's client whose answer took longest (its ``handler-s``)."""
+    trained = [c["train"] for c in round_row["clients"].values() if "handler-s" in c.get("train", {})]
+    return max(trained, key=lambda t: t["handler-s"], default={"handler-s": 0.0})
 
 
 def at_wall(mse_by_wall: list[tuple[float, float]], wall: float) -> tuple[float, float]:
@@ -115,8 +122,10 @@ def build_parser() -> OneSentenceParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.rounds < 2:
-        parser.error(f"--rounds got {args.rounds}; expected 2 or more (round 1 builds every client)")
+    if args.rounds < 3:
+        parser.error(
+            f"--rounds got {args.rounds}; expected 3 or more (round 1 builds every client, the last evaluates them)"
+        )
     if args.share > 1:
         parser.error(f"--share got {args.share}; expected a share of the CPU in (0, 1]")
     clients = load_registry().clients[: args.clients]
@@ -158,8 +167,9 @@ def report(figures: dict, args) -> None:
         print(f"{label:<16}{f['mean-steady-round-s']:>9.1f}{f['longest-round-s']:>9.1f}{ratio:>10}"
               f"{f['slow-owner-step-slowdown']:>10.1f}x{f['slow-owner-share-of-steps']:>12.1%}"
               f"{f['mse-by-wall'][-1][1]:>11.4g}{f['wall-s']:>8.0f}")  # fmt: skip
-        print(f"{'':<16}a round: the slowest client's answer {f['mean-slowest-client-s']:.1f} s, "
-              f"the server's evaluation {f['mean-server-evaluate-s']:.1f} s")  # fmt: skip
+        print(f"{'':<16}a round: the slowest client's answer {f['mean-slowest-client-s']:.1f} s (its ClientApp "
+              f"process started {f['mean-slowest-client-startup-s']:.1f} s before), the server's evaluation "
+              f"{f['mean-server-evaluate-s']:.1f} s; the last round {f['last-round-s']:.1f} s")  # fmt: skip
         for round_number, late in f["late"].items():
             print(f"  round {round_number}: late, dropped: {', '.join(f'client {i}' for i in late)}")
     for label in list(RUNS)[1:]:
