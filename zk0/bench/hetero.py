@@ -14,7 +14,7 @@ each round named as stragglers or late, and the server's action MSE per round, c
 wall time (counted from the end of round 1, which builds every client): each budget run's final
 model against the fixed-steps model of the last round that had ended by then.
 
-    python -m zk0.bench hetero [--clients 4] [--slow 1] [--rounds 6] [--local-steps 100] [--budget 10]
+    python -m zk0.bench hetero [--setting mild|noniid] [--clients 4] [--slow 1] [--rounds 6] [--local-steps 100] [--budget 10]
         [--deadline 30] [--share 0.25] [--batch-size 8] [--lr 2e-3] [--json FILE]
 """
 
@@ -26,12 +26,18 @@ import tempfile
 from contextlib import ExitStack
 from pathlib import Path
 
+from zk0.assets import ensure_dataset
 from zk0.bench.client import write_json
 from zk0.bench.throttle import Throttle
 from zk0.errors import OneSentenceParser, positive
+from zk0.logs import native_output_to
 from zk0.loopback import loopback_federation
-from zk0.registry import load_registry
+from zk0.registry import PROJECT_ROOT, load_registry
 
+SETTINGS = {  # --setting -> its registry ("" = pyproject.toml's four synthetic owners)
+    "mild": "",
+    "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml"),  # each owner's own quarter of the table
+}
 RUNS = {  # label -> the run-config keys it adds (the budget's value comes from --budget)
     "fixed steps": {},
     "budget, FedNova": {"averaging": "fednova"},
@@ -42,7 +48,7 @@ RUNS = {  # label -> the run-config keys it adds (the budget's value comes from 
 def run_config(args, keys: dict) -> str:
     """One run's keys: the same rounds, steps, batch and learning rate for all three."""
     budget = f" local-time-s={args.budget} round-deadline-s={args.deadline}" if keys else ""
-    extra = "".join(f" {k}='{v}'" for k, v in keys.items())
+    extra = "".join(f" {k}='{v}'" for k, v in {**keys, "registry": SETTINGS[args.setting]}.items())
     return (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} lr={args.lr} "
         f"eval-frequency=1 checkpoint-interval={args.rounds} min-train-clients={args.clients}{budget}{extra}"
@@ -106,6 +112,7 @@ def at_wall(mse_by_wall: list[tuple[float, float]], wall: float) -> tuple[float,
 def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench hetero", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--setting", choices=list(SETTINGS), default="mild", help="the owners' data (as the study's)")
     parser.add_argument("--clients", type=positive(int), default=4)
     parser.add_argument("--slow", type=positive(int), default=1, help="how many owners (the last) are throttled")
     parser.add_argument("--rounds", type=positive(int), default=6)
@@ -128,9 +135,10 @@ def main(argv: list[str] | None = None) -> int:
         )
     if args.share > 1:
         parser.error(f"--share got {args.share}; expected a share of the CPU in (0, 1]")
-    clients = load_registry().clients[: args.clients]
+    registry = load_registry(SETTINGS[args.setting])
+    clients = registry.clients[: args.clients]
     if len(clients) < args.clients or args.clients < 2:
-        parser.error(f"--clients got {args.clients}; expected 2 to {len(load_registry().clients)}")
+        parser.error(f"--clients got {args.clients}; expected 2 to {len(registry.clients)}")
     if args.slow >= args.clients:
         parser.error(f"--slow got {args.slow}; expected fewer than --clients ({args.clients}): someone must be fast")
     supernodes = {f"robot-{i}": entry.name for i, entry in enumerate(clients)}
@@ -138,6 +146,9 @@ def main(argv: list[str] | None = None) -> int:
     figures: dict = {"settings": vars(args), "slow-owners": [f"client {i} ({clients[i].name})" for i in sorted(slow)]}
     with tempfile.TemporaryDirectory(prefix="zk0-bench-hetero-") as tmp:
         root = Path(tmp)
+        with native_output_to(root / "assets.log"):  # the owners' data first, as `zk0 assets` makes it
+            for entry in registry.entries:
+                ensure_dataset(entry.name)
         with loopback_federation(root, supernodes) as fed, ExitStack() as throttles:  # throttles end first
             for i in sorted(slow):
                 throttles.enter_context(Throttle(root / f"robot-{i}", args.share))
@@ -156,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
 def report(figures: dict, args) -> None:
     """The table, and each budget run against fixed steps at its own wall time."""
     fixed = figures["fixed steps"]
-    print(f"\n{args.clients} owners, {', '.join(figures['slow-owners'])} held to {args.share:.0%} of the CPU; "
+    print(f"\n{args.clients} {args.setting} owners, {', '.join(figures['slow-owners'])} held to {args.share:.0%} of the CPU; "
           f"{args.rounds} rounds of {args.local_steps} steps or local-time-s={args.budget:g} "
           f"(round-deadline-s={args.deadline:g}), batch {args.batch_size}, lr {args.lr:g}")  # fmt: skip
     print(f"{'':<16}{'round s':>9}{'longest':>9}{'x budget':>10}{'slow step':>11}{'slow share':>12}"
