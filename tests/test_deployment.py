@@ -175,6 +175,8 @@ def test_with_a_time_budget_a_throttled_owner_takes_fewer_steps_and_is_named(fed
         log, _ = run.communicate(timeout=600)
     run_dir, record = history(out)
     assert [r["round"] for r in record["rounds"]] == [0, 1, 2, 3], log[-3000:]
+    first = {int(i): c["train"]["local-steps"] for i, c in record["rounds"][1]["clients"].items()}
+    assert min(first.values()) > 1, f"starting the warm worker is not the round's work, as the build is not: {first}"
     for r in (2, 3):  # round 1 also builds each client: its first steps are the slowest
         steps = {int(i): c["train"]["local-steps"] for i, c in record["rounds"][r]["clients"].items()}
         assert 1 <= steps[1] < steps[0] / 2 and steps[0] < 400, steps

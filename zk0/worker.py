@@ -117,7 +117,10 @@ def call(kind: str, content: RecordDict, context: Context, arrived: float) -> tu
     back as the same one sentence; ``WorkerUnavailable`` means the caller should work in-process.
     """
     path = socket_path(context.run_id, context.node_id)  # before the try: it raises WorkerUnavailable itself
+    connecting = time.time()
     with _connect(path) as sock:
+        # Starting the worker (round 1's imports) is not the round's work, as building the client is not.
+        arrived += time.time() - connecting
         try:
             header = json.dumps({"kind": kind, "arrived": arrived}).encode()
             _send(sock, header, context_to_proto(context).SerializeToString())
