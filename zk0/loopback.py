@@ -87,15 +87,15 @@ class LoopbackFederation:
         return self.flwr("run", str(app), CONNECTION, "--stream", "--run-config", run_config, timeout=timeout)
 
     def run_history(self, run_config: str, out: Path, who: str, timeout: float = 1800) -> dict | None:
-        """``run_app`` with its outputs in ``out``: the run's metric history, or None after the end
-        of its log and one sentence naming ``who`` ran it."""
+        """``run_app`` with its outputs in ``out``: the run's metric history and folder (``run-dir``),
+        or None after the end of its log and one sentence naming ``who`` ran it."""
         done = self.run_app(f"{run_config} output-dir='{out}'", timeout=timeout)
         runs = sorted(out.glob("*/server/metrics_history.json"))
         if not runs or "Exit Code: " in done.stdout:
             print(done.stdout[-4000:] + done.stderr[-2000:], file=sys.stderr)
             print(f"{who}: the deployment run did not finish; its log is above.", file=sys.stderr)
             return None
-        return json.loads(runs[-1].read_text())
+        return {"run-dir": str(runs[-1].parent.parent), **json.loads(runs[-1].read_text())}
 
     def log(self, name: str) -> str:
         return (self.root / f"{name}.log").read_text()
@@ -137,8 +137,9 @@ def warm_workers_of(pids: set[int]) -> list[psutil.Process]:
 
 
 @contextlib.contextmanager
-def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None = None):
-    """A running TLS federation under ``root``: ``supernodes`` maps key names to datasets.
+def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None = None, registry: str = ""):
+    """A running TLS federation under ``root``: ``supernodes`` maps key names to datasets, looked
+    up in ``registry`` (default: pyproject.toml's), which the runs' config must name too.
 
     Also creates a key pair named ``stranger`` that is never registered. Its processes get a
     temporary directory of their own that starts empty, as a new machine's does (what a
@@ -169,7 +170,8 @@ def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None
             time.sleep(1)
         fed.register(*supernodes)
         for key, dataset in supernodes.items():
-            fed.supernode(key, dataset, "--key", key, *(["--cpus", str(cpus)] if cpus else []))
+            extra = [*(["--cpus", str(cpus)] if cpus else []), *(["--registry", registry] if registry else [])]
+            fed.supernode(key, dataset, "--key", key, *extra)
         yield fed
     finally:
         fed.stop_all()

@@ -14,8 +14,16 @@ each round named as stragglers or late, and the server's action MSE per round, c
 wall time (counted from the end of round 1, which builds every client): each budget run's final
 model against the fixed-steps model of the last round that had ended by then.
 
-    python -m zk0.bench hetero [--setting mild|noniid] [--clients 4] [--slow 1] [--rounds 6] [--local-steps 100] [--budget 10]
-        [--deadline 30] [--share 0.25] [--batch-size 8] [--lr 2e-3] [--json FILE]
+``--setting sim-cube`` (simulated SO-101 owners told where the cube is, as the study's) also keeps
+every round's checkpoint and, once the runs are over (unthrottled), rolls the compared models out
+on the same ``--sim-episodes`` seeded episodes in the server's conditions: each budget run's final
+model against fixed steps' at equal wall time, and against fixed steps' final model (equal rounds),
+each with its 95% interval and McNemar's test. Every round's checkpoint is in every run's round
+time, so the budget runs, which fit more rounds in a wall time, pay for more of them.
+
+    python -m zk0.bench hetero [--setting mild|noniid|sim-cube] [--clients 4] [--slow 1] [--rounds 6] [--local-steps 100]
+        [--budget 10] [--deadline 30] [--share 0.25] [--batch-size 8] [--lr 2e-3] [--model tiny] [--demos 30]
+        [--sim-episodes 100] [--json FILE]
 """
 
 from __future__ import annotations
@@ -26,18 +34,27 @@ import tempfile
 from contextlib import ExitStack
 from pathlib import Path
 
-from zk0.assets import ensure_dataset
+from safetensors.torch import load_file
+
+from zk0.artifacts import checkpoints
 from zk0.bench.client import write_json
+from zk0.bench.models import SERVER, Weights, closed_loop_all, generate
 from zk0.bench.throttle import Throttle
+from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.data import open_evaluation, open_metadata
 from zk0.errors import OneSentenceParser, positive
 from zk0.logs import native_output_to
 from zk0.loopback import loopback_federation
-from zk0.registry import PROJECT_ROOT, load_registry
+from zk0.policy import build_policy
+from zk0.rates import compare_text, mcnemar, rate_text
+from zk0.registry import PROJECT_ROOT, Registry, load_registry
 
 SETTINGS = {  # --setting -> its registry ("" = pyproject.toml's four synthetic owners)
     "mild": "",
     "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml"),  # each owner's own quarter of the table
+    "sim-cube": str(PROJECT_ROOT / "configs" / "sim-cube-registry.toml"),  # simulated owners, the cube's xy known
 }
+CLOSED_LOOP = ("sim-cube",)  # settings whose models are also rolled out in the simulator
 RUNS = {  # label -> the run-config keys it adds (the budget's value comes from --budget)
     "fixed steps": {},
     "budget, FedNova": {"averaging": "fednova"},
@@ -45,14 +62,25 @@ RUNS = {  # label -> the run-config keys it adds (the budget's value comes from 
 }
 
 
-def run_config(args, keys: dict) -> str:
-    """One run's keys: the same rounds, steps, batch and learning rate for all three."""
+def run_config(args, keys: dict, registry: Registry) -> str:
+    """One run's keys: the same rounds, steps, batch, learning rate and model for all three (in a
+    closed-loop setting, every round's checkpoint kept, to roll out the model of any round)."""
     budget = f" local-time-s={args.budget} round-deadline-s={args.deadline}" if keys else ""
-    extra = "".join(f" {k}='{v}'" for k, v in {**keys, "registry": SETTINGS[args.setting]}.items())
+    strings = {**keys, "registry": SETTINGS[args.setting], "model": args.model}
+    checkpoint = f"checkpoint-interval={args.rounds}"
+    if args.setting in CLOSED_LOOP:
+        strings["server-eval-dataset"] = server_set(registry)
+        checkpoint = "checkpoint-interval=1 keep-checkpoints=0"
+    extra = "".join(f" {k}='{v}'" for k, v in strings.items())
     return (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} lr={args.lr} "
-        f"eval-frequency=1 checkpoint-interval={args.rounds} min-train-clients={args.clients}{budget}{extra}"
+        f"eval-frequency=1 {checkpoint} min-train-clients={args.clients}{budget}{extra}"
     )
+
+
+def server_set(registry: Registry) -> str:
+    """The registry's server evaluation set."""
+    return next(e.name for e in registry.entries if e.role == "server")
 
 
 def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
@@ -94,6 +122,7 @@ def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
             for r in rounds
             if "server-evaluate" in r and r["round"] >= 1
         ],
+        "wall-by-round": {str(r): walls[r] - walls[1] for r in sorted(walls) if r >= 1},
         "wall-s": walls[max(walls)],
     }
 
@@ -109,6 +138,56 @@ def at_wall(mse_by_wall: list[tuple[float, float]], wall: float) -> tuple[float,
     return [point for point in mse_by_wall if point[0] <= wall][-1]
 
 
+def closed_loop(args, registry: Registry, folders: dict[str, Path], figures: dict) -> dict:
+    """The models the MSE comparison compares, rolled out on the same seeded episodes in the
+    server's conditions: {model: its rates and outcomes}, and each budget run against fixed steps
+    at equal wall time and at equal rounds."""
+    run = RunConfig(registry=SETTINGS[args.setting], server_eval_dataset=server_set(registry), model=args.model)
+    entry = registry.get(run.server_eval_dataset)
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    split = open_evaluation(entry, meta, bundle.policy.config, run)
+    fixed_walls = figures["fixed steps"]["wall-by-round"]
+    wanted: dict[str, tuple[str, int]] = {f"fixed steps, round {args.rounds}": ("fixed steps", args.rounds)}
+    pairs = {}
+    for label in list(RUNS)[1:]:
+        wall = figures[label]["wall-by-round"][str(args.rounds)]
+        then = max(int(r) for r, w in fixed_walls.items() if w <= wall)  # fixed steps' model by then
+        wanted[f"{label}, round {args.rounds}"] = (label, args.rounds)
+        wanted[f"fixed steps, round {then}"] = ("fixed steps", then)
+        pairs[label] = (
+            f"{label}, round {args.rounds}",
+            f"fixed steps, round {then}",
+            f"fixed steps, round {args.rounds}",
+        )
+    models = {
+        name: checkpoint_weights(folders[label], r, bundle.trainable_names) for name, (label, r) in wanted.items()
+    }
+    rolled = closed_loop_all({SERVER: list(models)}, models, {SERVER: (bundle, split, None)},
+                             args.sim_episodes, run.seed, lambda line: print(f"  {line}", flush=True))  # fmt: skip
+    success = {name: row[SERVER] for name, row in rolled.items()}
+    return {
+        "success": success,
+        "against-fixed": {
+            label: {
+                "model": mine,
+                **{
+                    kind: {"model": other, "mcnemar-p": mcnemar(success[mine]["outcomes"], success[other]["outcomes"])}
+                    for kind, other in (("equal-wall", at_wall_model), ("equal-rounds", final))
+                },
+            }
+            for label, (mine, at_wall_model, final) in pairs.items()
+        },
+    }
+
+
+def checkpoint_weights(run_dir: Path, server_round: int, names: list[str]) -> Weights:
+    """The trainable weights of a run's checkpoint of ``server_round`` (every round's is kept)."""
+    folder = dict(checkpoints(run_dir))[server_round]
+    tensors = load_file(folder / "model.safetensors")
+    return {name: tensors[name].float() for name in names}
+
+
 def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench hetero", description=__doc__.split("\n\n")[0])
@@ -122,6 +201,13 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument("--share", type=positive(float), default=0.25, help="the slow owner's share of the CPU")
     parser.add_argument("--batch-size", type=positive(int), default=8)
     parser.add_argument("--lr", type=positive(float), default=2e-3)
+    parser.add_argument(
+        "--model", default="tiny", choices=OFFLINE_MODELS, help="the offline model (sim-cube: tiny-128)"
+    )
+    parser.add_argument("--demos", type=positive(int), default=30, help="demonstrations per simulated owner (sim-cube)")
+    parser.add_argument(
+        "--sim-episodes", type=positive(int), default=100, help="closed-loop episodes per model (sim-cube)"
+    )
     parser.add_argument("--json", help="also write the figures to this JSON file")
     return parser
 
@@ -147,18 +233,26 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="zk0-bench-hetero-") as tmp:
         root = Path(tmp)
         with native_output_to(root / "assets.log"):  # the owners' data first, as `zk0 assets` makes it
-            for entry in registry.entries:
-                ensure_dataset(entry.name)
-        with loopback_federation(root, supernodes) as fed, ExitStack() as throttles:  # throttles end first
+            generate(registry, args.demos)
+        folders = {}
+        with (
+            loopback_federation(root, supernodes, registry=SETTINGS[args.setting]) as fed,
+            ExitStack() as throttles,
+        ):  # throttles end first
             for i in sorted(slow):
                 throttles.enter_context(Throttle(root / f"robot-{i}", args.share))
             for label, keys in RUNS.items():
                 out = root / label.replace(", ", "-").replace(" ", "-")
-                history = fed.run_history(run_config(args, keys), out, f"bench.hetero ({label})", timeout=3600)
+                history = fed.run_history(
+                    run_config(args, keys, registry), out, f"bench.hetero ({label})", timeout=3600
+                )
                 if history is None:
                     return 1
+                folders[label] = Path(history["run-dir"])
                 figures[label] = figures_of(history, slow, args.budget if keys else None)
                 print(f"  {label}: {figures[label]['wall-s']:.0f} s", flush=True)
+        if args.setting in CLOSED_LOOP:  # after the runs: the throttles are off, nothing else runs
+            figures["closed-loop"] = closed_loop(args, registry, folders, figures)
     report(figures, args)
     write_json(args.json, figures)
     return 0
@@ -190,6 +284,22 @@ def report(figures: dict, args) -> None:
         f["vs-fixed-at-equal-wall"] = mse / fixed_mse
         print(f"{label} {wall:.0f} s after round 1: server action MSE {mse:.4g} against fixed steps' {fixed_mse:.4g} "
               f"(its model at {then:.0f} s): {mse / fixed_mse:.2f}x")  # fmt: skip
+    if "closed-loop" in figures:
+        report_closed_loop(figures["closed-loop"])
+
+
+def report_closed_loop(closed: dict) -> None:
+    """Each rolled-out model's success with its interval, and each budget run against fixed steps."""
+    success = closed["success"]
+    print("closed-loop success in the server's conditions:")
+    for name, rates in success.items():
+        print(f"  {name:<28}{rate_text(rates['success-rate'], int(rates['episodes']))}")
+    for against in closed["against-fixed"].values():
+        mine = success[against["model"]]["outcomes"]
+        for kind in ("equal-wall", "equal-rounds"):
+            other = against[kind]["model"]
+            text = compare_text(mine, success[other]["outcomes"])
+            print(f"  {against['model']} against {other} ({kind.replace('-', ' ')}): {text}")
 
 
 if __name__ == "__main__":
