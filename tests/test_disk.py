@@ -43,8 +43,10 @@ def small_disk(folder, megabytes: float):
 def fill(folder, leave: int = 0) -> None:
     """Write a file in ``folder`` that leaves at most ``leave`` bytes of its filesystem free."""
     with open(folder / "filler", "wb", buffering=0) as out:
-        with contextlib.suppress(OSError):  # at once where the filesystem allocates (tmpfs does): a
-            os.posix_fallocate(out.fileno(), 0, shutil.disk_usage(folder).free - leave - 2**20)  # run can't outpace it
+        # All but the last megabyte at once where the filesystem can (tmpfs can): a run must not
+        # outpace the filling. The writes below take the rest, to the block.
+        with contextlib.suppress(OSError):
+            os.posix_fallocate(out.fileno(), 0, shutil.disk_usage(folder).free - leave - 2**20)
         out.seek(0, os.SEEK_END)
         while (free := shutil.disk_usage(folder).free - leave) > 0:
             try:

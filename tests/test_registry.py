@@ -20,8 +20,18 @@ def test_project_registry_lists_four_clients_and_a_server_dataset(registry):
         "synth-so101-reach",
     ]
     assert registry.get("synth-so100-eval").role == "server"
+    assert registry.server.name == "synth-so100-eval"
     assert registry.get("zk0/synth_so100_stacking").name == "synth-so100-stacking"
     assert registry.model_cameras() == ["observation.images.camera1", "observation.images.camera2"]
+
+
+def test_a_registry_without_a_server_set_says_so_when_one_is_asked_for(registry):
+    clients_only = dataclasses.replace(registry, entries=registry.clients)
+    with pytest.raises(RegistryError) as err:
+        _ = clients_only.server
+    assert str(err.value).startswith(
+        'The registry has no server evaluation set; expected an entry with role = "server"'
+    )
 
 
 def test_differently_named_cameras_map_to_identical_model_inputs(registry):

@@ -81,6 +81,17 @@ class Registry:
     def clients(self) -> list[DatasetEntry]:
         return [e for e in self.entries if e.role == "client"]
 
+    @property
+    def server(self) -> DatasetEntry:
+        """The server's evaluation set: the first entry with ``role = "server"``."""
+        for entry in self.entries:
+            if entry.role == "server":
+                return entry
+        names = [e.name for e in self.entries]
+        raise RegistryError(
+            f'The registry has no server evaluation set; expected an entry with role = "server" among {names}.'
+        )
+
     def model_cameras(self) -> list[str]:
         """The global model's camera input keys: every mapping target, sorted."""
         targets = {dst for e in self.entries for dst in e.cameras.values()}

@@ -44,16 +44,21 @@ class ResumePoint:
     server_state: dict[str, np.ndarray] = field(default_factory=dict)
 
     def trainable(self, bundle: PolicyBundle) -> ArrayRecord:
-        """The checkpoint's trainable tensors, under the policy's parameter names (a LoRA run's
-        adapters come from the checkpoint's ``adapter/``; its merged weights are for users)."""
-        if adapters.is_adapted(bundle.policy):
-            adapters.load_adapter(bundle.policy, self.checkpoint)
-            return get_trainable(bundle)
-        weights = load_file(self.checkpoint / "model.safetensors")
-        missing = [n for n in bundle.trainable_names if n not in weights]
-        if missing:
-            raise ConfigError(f"Checkpoint {str(self.checkpoint)!r} lacks trainable tensors such as {missing[:2]}.")
-        return ArrayRecord({name: weights[name].float() for name in bundle.trainable_names})
+        """The resume point's trainable tensors (``checkpoint_trainable``)."""
+        return checkpoint_trainable(self.checkpoint, bundle)
+
+
+def checkpoint_trainable(checkpoint: Path, bundle: PolicyBundle) -> ArrayRecord:
+    """A checkpoint's trainable tensors, under the policy's parameter names (a LoRA run's
+    adapters come from the checkpoint's ``adapter/``; its merged weights are for users)."""
+    if adapters.is_adapted(bundle.policy):
+        adapters.load_adapter(bundle.policy, checkpoint)
+        return get_trainable(bundle)
+    weights = load_file(checkpoint / "model.safetensors")
+    missing = [n for n in bundle.trainable_names if n not in weights]
+    if missing:
+        raise ConfigError(f"Checkpoint {str(checkpoint)!r} lacks trainable tensors such as {missing[:2]}.")
+    return ArrayRecord({name: weights[name].float() for name in bundle.trainable_names})
 
 
 def find_resume_point(resume_from: str) -> ResumePoint:

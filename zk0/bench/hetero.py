@@ -34,11 +34,9 @@ import tempfile
 from contextlib import ExitStack
 from pathlib import Path
 
-from safetensors.torch import load_file
-
 from zk0.artifacts import checkpoints
 from zk0.bench.client import write_json
-from zk0.bench.models import SERVER, Weights, closed_loop_all, generate
+from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.throttle import Throttle
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data import open_evaluation, open_metadata
@@ -48,6 +46,7 @@ from zk0.loopback import loopback_federation
 from zk0.policy import build_policy
 from zk0.rates import compare_text, mcnemar, rate_text
 from zk0.registry import PROJECT_ROOT, Registry, load_registry
+from zk0.resume import checkpoint_trainable
 
 SETTINGS = {  # --setting -> its registry ("" = pyproject.toml's four synthetic owners)
     "mild": "",
@@ -69,18 +68,13 @@ def run_config(args, keys: dict, registry: Registry) -> str:
     strings = {**keys, "registry": SETTINGS[args.setting], "model": args.model}
     checkpoint = f"checkpoint-interval={args.rounds}"
     if args.setting in CLOSED_LOOP:
-        strings["server-eval-dataset"] = server_set(registry)
+        strings["server-eval-dataset"] = registry.server.name
         checkpoint = "checkpoint-interval=1 keep-checkpoints=0"
     extra = "".join(f" {k}='{v}'" for k, v in strings.items())
     return (
         f"num-server-rounds={args.rounds} local-steps={args.local_steps} batch-size={args.batch_size} lr={args.lr} "
         f"eval-frequency=1 {checkpoint} min-train-clients={args.clients}{budget}{extra}"
     )
-
-
-def server_set(registry: Registry) -> str:
-    """The registry's server evaluation set."""
-    return next(e.name for e in registry.entries if e.role == "server")
 
 
 def figures_of(history: dict, slow: set[int], budget: float | None) -> dict:
@@ -142,7 +136,7 @@ def closed_loop(args, registry: Registry, folders: dict[str, Path], figures: dic
     """The models the MSE comparison compares, rolled out on the same seeded episodes in the
     server's conditions: {model: its rates and outcomes}, and each budget run against fixed steps
     at equal wall time and at equal rounds."""
-    run = RunConfig(registry=SETTINGS[args.setting], server_eval_dataset=server_set(registry), model=args.model)
+    run = RunConfig(registry=SETTINGS[args.setting], server_eval_dataset=registry.server.name, model=args.model)
     entry = registry.get(run.server_eval_dataset)
     meta = open_metadata(entry)
     bundle = build_policy(run, meta, entry, registry.model_cameras())
@@ -160,8 +154,9 @@ def closed_loop(args, registry: Registry, folders: dict[str, Path], figures: dic
             f"fixed steps, round {then}",
             f"fixed steps, round {args.rounds}",
         )
+    kept = {label: dict(checkpoints(folder)) for label, folder in folders.items()}  # every round's
     models = {
-        name: checkpoint_weights(folders[label], r, bundle.trainable_names) for name, (label, r) in wanted.items()
+        name: checkpoint_trainable(kept[label][r], bundle).to_torch_state_dict() for name, (label, r) in wanted.items()
     }
     rolled = closed_loop_all({SERVER: list(models)}, models, {SERVER: (bundle, split, None)},
                              args.sim_episodes, run.seed, lambda line: print(f"  {line}", flush=True))  # fmt: skip
@@ -179,13 +174,6 @@ def closed_loop(args, registry: Registry, folders: dict[str, Path], figures: dic
             for label, (mine, at_wall_model, final) in pairs.items()
         },
     }
-
-
-def checkpoint_weights(run_dir: Path, server_round: int, names: list[str]) -> Weights:
-    """The trainable weights of a run's checkpoint of ``server_round`` (every round's is kept)."""
-    folder = dict(checkpoints(run_dir))[server_round]
-    tensors = load_file(folder / "model.safetensors")
-    return {name: tensors[name].float() for name in names}
 
 
 def build_parser() -> OneSentenceParser:

@@ -63,7 +63,7 @@ def main(argv: list[str]) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     registry = load_registry(args.registry)
-    server = next(e for e in registry.entries if e.role == "server")
+    server = registry.server
     run = RunConfig(
         registry=args.registry, server_eval_dataset=server.name, model=args.model, batch_size=args.batch_size,
         lr=args.lr, local_steps=args.steps, eval_batches=args.eval_batches,

@@ -101,7 +101,7 @@ FEDERATIONS = {
 
 def study_run(args: argparse.Namespace, registry: str, seed: int = RunConfig.seed) -> RunConfig:
     """The in-process baselines' config: the federation's own keys (zk0.bench.models.federate)."""
-    server = next(e.name for e in load_registry(registry).entries if e.role == "server")
+    server = load_registry(registry).server.name
     return RunConfig(
         seed=seed,
         server_eval_dataset=server,
