@@ -32,6 +32,8 @@ from flwr.serverapp.strategy import FedAvg, Strategy
 from loguru import logger
 
 from zk0.errors import REFUSED, Zk0Error
+from zk0.privacy import OwnerLevelDP, PrivacyBudgetSpent
+from zk0.robust import combine
 from zk0.server_optimisers import optimiser_name, optimiser_state
 from zk0.wire import CLIENT, EVALUATE_ROUND, EVALUATION, KEEP_STATE, decode, encode
 
@@ -62,6 +64,18 @@ class RoundObserver(Protocol):
     ) -> None:
         """The round is over: ``arrays`` is the global model, ``evaluation`` the server's of it,
         ``server_state`` what the server optimiser carries into the next round."""
+
+    def record_privacy(self, server_round: int, spent: dict) -> None:
+        """The privacy the run has spent once this round's model was released (``OwnerLevelDP.spent``)."""
+
+    def checkpoint(
+        self,
+        server_round: int,
+        arrays: ArrayRecord,
+        evaluation: MetricRecord | None,
+        server_state: dict[str, np.ndarray],
+    ):
+        """Keep this round's model as a checkpoint to resume from (a round the run ends early in)."""
 
 
 class RunCannotTrain(Zk0Error):
@@ -127,6 +141,8 @@ class ValidatingStrategy(Strategy):
         proximal_mu: float = 0.0,
         update_clip: float = 0.0,
         averaging: str = "samples",
+        privacy: OwnerLevelDP | None = None,
+        rule: FedAvg | None = None,
     ) -> None:
         self.inner = inner
         self.expected = expected
@@ -139,17 +155,22 @@ class ValidatingStrategy(Strategy):
         self.proximal_mu = proximal_mu
         self.update_clip = update_clip  # an update above this times the others' median norm is scaled to it; 0 = off
         self.averaging = averaging  # updates of unequal steps: "fednova" (normalised by steps) or "samples"
+        self.privacy = privacy  # owner-level DP: Flower's clip, mean and noise replace update-clip and the weights
+        self.rule = rule  # a robust rule of Flower's (zk0.robust) in place of the mean; None: the mean
         self.current: ArrayRecord | None = None  # the global model this round's updates start from
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
 
     def summary(self) -> None:
         logger.info(
-            "Server optimiser {} with proximal-mu {}, update-clip {}",
+            "Server optimiser {} with proximal-mu {}, update-clip {}, {}",
             optimiser_name(self.inner),
             self.proximal_mu,
-            self.update_clip or "off",
+            "replaced by owner-level DP's clip" if self.privacy else self.update_clip or "off",
+            f"aggregation {type(self.rule).__name__}" if self.rule else "the weighted mean",
         )
+        if self.privacy:
+            self.privacy.mechanism.summary()
         self.inner.summary()
 
     def server_state(self) -> dict[str, np.ndarray]:
@@ -167,17 +188,32 @@ class ValidatingStrategy(Strategy):
             server_round = flower_round + self.round_offset
             evaluation = evaluate_fn(server_round, arrays) if evaluate_fn else None
             self.observer.round_ended(server_round, arrays, evaluation, self.server_state())
+            if server_round and server_round < self.last_round and self.privacy and self.privacy.would_exceed():
+                self.stop_within_budget(server_round, arrays, evaluation)
             return evaluation
 
         return super().start(evaluate_fn=evaluate_and_end_round, **kwargs)
+
+    def stop_within_budget(self, server_round: int, arrays: ArrayRecord, evaluation: MetricRecord | None) -> None:
+        """End the run after ``server_round``, the last release that fits ``dp-epsilon-budget``: its
+        model is kept as a checkpoint (a resumed run with a larger budget continues from it)."""
+        if not self.checkpoints_in(server_round):
+            self.observer.checkpoint(server_round, arrays, evaluation, self.server_state())
+        spent = self.privacy.spent()
+        raise PrivacyBudgetSpent(
+            f"Round {server_round} spent epsilon {spent['epsilon']:.3g} at delta {spent['delta']:g}, and round "
+            f"{server_round + 1} would take it to {self.privacy.epsilon_after(1):.3g}, past dp-epsilon-budget="
+            f"{spent['budget']:g}; the run ends here with round {server_round}'s model kept as a checkpoint."
+        )
 
     def configure_train(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
         server_round += self.round_offset
         self.current = arrays
+        privacy = {"dp-epsilon-spent": self.privacy.spent()["epsilon"]} if self.privacy else {}
         config = ConfigRecord(
-            {**config, "proximal-mu": self.proximal_mu, KEEP_STATE: self.checkpoints_in(server_round)}
+            {**config, "proximal-mu": self.proximal_mu, KEEP_STATE: self.checkpoints_in(server_round), **privacy}
         )  # FedProx's key, for any optimiser; a checkpoint round's clients keep their state to resume from
         messages = list(self.inner.configure_train(server_round, arrays, config, grid))
         wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
@@ -276,9 +312,16 @@ class ValidatingStrategy(Strategy):
             self.observer.record_clients("train", server_round, [m.content for m in valid], None, {})
             return None, None
         current = {name: array.numpy() for name, array in self.current.items()}  # decoded once, not per client
-        self.bound_updates(server_round, valid, current)
-        if self.averaging == "fednova":
-            self.normalise_steps(server_round, valid, current)
+        if self.privacy:
+            self.record_norms(valid, current, self.privacy.clip)
+            self.replace_updates(valid, self.privacy.release(server_round, valid, self.current))
+            self.observer.record_privacy(server_round, self.privacy.spent())
+        else:
+            self.bound_updates(server_round, valid, current)
+            if self.averaging == "fednova":
+                self.normalise_steps(server_round, valid, current)
+            if self.rule is not None:
+                self.replace_updates(valid, combine(self.rule, server_round, valid))
         arrays, metrics = self.inner.aggregate_train(server_round, valid)
         self.observer.record_clients("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
@@ -313,6 +356,19 @@ class ValidatingStrategy(Strategy):
             (metrics,) = msg.content.metric_records.values()
             metrics["update-norm"], metrics["update-scale"] = norms[i], scale
 
+    def record_norms(self, valid: list[Message], current: dict[str, np.ndarray], clip: float) -> None:
+        """Each reply's ``update-norm`` and the ``update-scale`` a fixed clip at ``clip`` gives it."""
+        for msg in valid:
+            norm = update_norm(msg.content[self.inner.arrayrecord_key], current)
+            (metrics,) = msg.content.metric_records.values()
+            metrics["update-norm"], metrics["update-scale"] = norm, min(1.0, clip / norm) if norm else 1.0
+
+    def replace_updates(self, valid: list[Message], combined: ArrayRecord) -> None:
+        """Every reply's arrays become ``combined`` (the noisy mean, a robust rule's combination), so
+        the server optimiser's weighted average of them is it, and it steps from there."""
+        for msg in valid:
+            msg.content[self.inner.arrayrecord_key] = combined
+
     def normalise_steps(self, server_round: int, valid: list[Message], current: dict[str, np.ndarray]) -> None:
         """FedNova's normalised averaging (Wang et al. 2020) when the clients took different steps.
 
@@ -337,9 +393,10 @@ class ValidatingStrategy(Strategy):
         for msg, weight, scale in zip(valid, weights, scales, strict=True):
             for name, start in current.items():
                 averaged[name] += weight * scale * (msg.content[key][name].numpy() - start)
-        normalised = ArrayRecord({name: Array(current[name] + change) for name, change in averaged.items()})
-        for msg, m, scale in zip(valid, metrics, scales, strict=True):
-            msg.content[key] = normalised
+        self.replace_updates(
+            valid, ArrayRecord({name: Array(current[name] + change) for name, change in averaged.items()})
+        )
+        for m, scale in zip(metrics, scales, strict=True):
             m["step-scale"] = scale
         logger.info(
             "Round {}: the clients took {}-{} local steps; averaged with FedNova (mean steps {:.1f}).",

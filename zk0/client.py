@@ -36,6 +36,7 @@ from zk0.logs import add_file_sink, prints_to_log, setup_logging
 from zk0.personal import Personaliser, build_personaliser
 from zk0.policy import PolicyBundle, PolicyError, backbone_fingerprint, build_policy, set_trainable, trainable_tensors
 from zk0.preflight import check_dataset, model_inputs
+from zk0.record_privacy import PrivateTrainer
 from zk0.registry import DatasetEntry, Registry, load_registry
 from zk0.stats import stats_to_record
 from zk0.training import LocalTrainer, evaluate
@@ -83,7 +84,8 @@ def build_client(
         meta = check_dataset(entry, model_inputs(run, model_cameras, shapes), run.eval_episodes)
         bundle = build_policy(run, meta, entry, model_cameras)
         split = open_split(entry, meta, bundle.policy.config, run)
-        trainer = LocalTrainer(bundle, split, train_loader(split.train, run, bundle.device), run)
+        trainer_kind = PrivateTrainer if run.dp == "record" else LocalTrainer  # DP-SGD per demonstration
+        trainer = trainer_kind(bundle, split, train_loader(split.train, run, bundle.device), run)
         fingerprint = backbone_fingerprint(bundle)
         logger.info(
             "Opened {} ({} training, {} held-out episodes) and built SmolVLA ({} trainable tensors) on {}; app {}",
@@ -233,6 +235,15 @@ def _train(
     budget = training_budget(run.local_time_s, time.perf_counter() - began)
     metrics = session.trainer.fit(run.local_steps, float(config["proximal-mu"]), first_step, budget)
     logger.info("Round {} train on {}: {}", server_round, session.split.entry.name, metrics)
+    if "dp-epsilon-spent" in config:
+        logger.info(
+            "Owner-level privacy: the models released before round {} have spent epsilon {:.3f} at delta {:g} of "
+            "dp-epsilon-budget={:g} (the server's accountant)",
+            server_round,
+            float(config["dp-epsilon-spent"]),
+            run.dp_delta,
+            run.dp_epsilon_budget,
+        )
     if keep_optimizer:
         context.state[OPTIMIZER] = session.trainer.optimizer_record()
     if config.get(KEEP_STATE):

@@ -29,6 +29,13 @@ LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.a
 LORA_FULL_MODULES = "state_proj,action_in_proj,action_out_proj,action_time_mlp_in,action_time_mlp_out"
 SERVER_OPTIMISERS = ("fedavg", "fedavgm", "nesterov", "fedadam", "fedyogi")  # zk0.server_optimisers
 AVERAGINGS = ("fednova", "samples")  # how updates of unequal work are averaged (zk0.aggregation)
+DP_KINDS = (
+    "off",
+    "owner",
+    "record",
+)  # differential privacy: none, of each owner (server), of each demonstration (client)
+# How the server combines the round's updates (zk0.aggregation): the weighted mean, or one of Flower's robust rules
+AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum", "multi-krum")
 
 
 class ConfigError(Zk0Error):
@@ -89,6 +96,16 @@ class RunConfig:
     personal_steps: int = 0  # each client fine-tunes the global model this many steps when it evaluates (zk0.personal)
     personal_mu: float = 0.0  # the personal model's proximal pull toward the global one while it fine-tunes
     personal_lr: float = 0.0  # that fine-tuning's peak learning rate; 0 = a quarter of lr
+    dp: str = "off"  # differential privacy: off | owner (Flower's central DP) | record (DP-SGD on each owner's machine)
+    dp_clip: float = 1.0  # owner: the L2 bound on each owner's update; record: on each demonstration's gradient
+    dp_noise_multiplier: float = (
+        0.0  # the Gaussian noise's std over dp-clip; 0 = the least that keeps the run within the budget
+    )
+    dp_delta: float = 1e-5  # the delta of (epsilon, delta)-DP
+    dp_epsilon_budget: float = 8.0  # the run stops before a release would spend more epsilon than this
+    aggregation: str = "mean"  # mean (weighted) | median | trimmed-mean | krum | multi-krum (Flower's robust rules)
+    trim_fraction: float = 0.2  # trimmed-mean: the share of the largest and of the smallest values cut per weight
+    hostile_owners: int = 1  # krum/multi-krum: how many owners may be hostile
 
     @property
     def personal_peak_lr(self) -> float:
@@ -148,6 +165,12 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "personal_steps": (0, None, False),
     "personal_mu": (0, None, False),
     "personal_lr": (0, 1, False),
+    "dp_clip": (0, None, True),
+    "dp_noise_multiplier": (0, None, False),
+    "dp_delta": (0, 1, True),
+    "dp_epsilon_budget": (0, None, True),
+    "trim_fraction": (0, None, False),
+    "hostile_owners": (0, None, False),
 }
 
 
@@ -208,6 +231,7 @@ def _check_choices(cfg: RunConfig) -> None:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")
     _check_peft(cfg)
     _check_server_optimiser(cfg)
+    _check_privacy(cfg)
     if cfg.sim_eval_episodes and cfg.server_eval_dataset not in SIM_SPECS:
         raise ConfigError(
             f"Run-config key 'sim-eval-episodes' = {cfg.sim_eval_episodes} rolls the model out in the simulator, "
@@ -256,4 +280,39 @@ def _check_peft(cfg: RunConfig) -> None:
             f"Run-config key 'peft' = 'lora' adapts a pretrained SmolVLA, and model={cfg.model!r} has random "
             "weights (lerobot refuses LoRA from scratch); expected 'model' to be a checkpoint folder such as "
             "outputs/<run>/models/checkpoint_round_<N> or a Hub id such as lerobot/smolvla_base."
+        )
+
+
+def _check_privacy(cfg: RunConfig) -> None:
+    """A known DP kind and aggregation, and no combination whose guarantee would not hold.
+
+    Owner-level DP bounds what one owner adds to the plain average: a robust rule (a median,
+    Krum) or FedNova's step weights change that bound, so the accountant's epsilon would be
+    wrong. Its own fixed clip replaces ``update-clip`` (a clip relative to the others' median
+    lets one owner change how much every other owner counts)."""
+    if cfg.dp not in DP_KINDS:
+        raise ConfigError(f"Run-config key 'dp' got {cfg.dp!r}; expected one of {list(DP_KINDS)}.")
+    if cfg.aggregation not in AGGREGATIONS:
+        raise ConfigError(
+            f"Run-config key 'aggregation' got {cfg.aggregation!r}; expected one of {list(AGGREGATIONS)}."
+        )
+    if cfg.dp_delta >= 1:
+        raise ConfigError(
+            f"Run-config key 'dp-delta' got {cfg.dp_delta!r}; expected a value > 0 and < 1 (well below one over the "
+            "number of owners or demonstrations, such as the default 1e-5)."
+        )
+    if cfg.trim_fraction >= 0.5:
+        raise ConfigError(
+            f"Run-config key 'trim-fraction' got {cfg.trim_fraction!r}; expected a value >= 0 and < 0.5 (the share "
+            "cut from each end, so some values are left to average)."
+        )
+    if cfg.dp == "owner" and cfg.aggregation != "mean":
+        raise ConfigError(
+            f"Run-config key 'aggregation' = {cfg.aggregation!r} cannot go with dp='owner': the accountant's epsilon "
+            "holds for the mean of clipped updates only; expected aggregation='mean', or dp='record' or 'off'."
+        )
+    if cfg.dp == "owner" and cfg.averaging == "fednova":
+        raise ConfigError(
+            "Run-config key 'averaging' = 'fednova' cannot go with dp='owner': FedNova weights each update by its "
+            "steps, and owner-level DP needs every owner to count alike; expected averaging='samples'."
         )

@@ -62,6 +62,9 @@ task as in docs/robot-owners.md):</p>
 <p id="best">The server has evaluated no round yet, so there is no <code>models/best</code>.</p>
 {% endif %}
 
+<h2>What the server learns about an owner</h2>
+<p id="privacy">{{ privacy }} zk0's docs/privacy.md says what each setting protects and what it costs.</p>
+
 <h2>Rounds</h2>
 <table id="rounds">
 <tr>{% for column in round_columns %}<th>{{ column.title }}</th>{% endfor %}</tr>
@@ -128,6 +131,7 @@ ROUND_COLUMNS = [
     ("policy-loss", "server policy loss"),
     ("action-mse", "server action MSE"),
     ("success-rate", "success rate [95% interval] of episodes"),
+    ("epsilon", "privacy spent (epsilon)"),
     ("wall-s", "seconds since start"),
 ]
 
@@ -168,9 +172,45 @@ def round_row(record: dict) -> dict:
         "policy-loss": server.get("policy-loss"),
         "action-mse": server.get("action-mse"),
         "success-rate": (server["success-rate"], success_text(server)) if "success-rate" in server else None,
+        "epsilon": epsilon_spent(record),
         "wall-s": record.get("wall-s"),
     }
     return {"round": record["round"], "cells": values}
+
+
+def epsilon_spent(record: dict) -> float | None:
+    """The privacy spent once a round's model was released: owner-level DP's epsilon, or with
+    record-level DP the largest any owner's demonstrations have spent (each owner's accountant)."""
+    if "privacy" in record:
+        return float(record["privacy"]["epsilon"])
+    spent = [c["train"]["record-epsilon"] for c in record["clients"].values() if "record-epsilon" in c.get("train", {})]
+    return max(spent) if spent else None
+
+
+def privacy_sentence(history: dict, config: dict) -> str:
+    """What the server received from each owner under the run's ``dp`` setting, and what it spent."""
+    kind, budget, delta = config.get("dp", "off"), config.get("dp-epsilon-budget"), config.get("dp-delta")
+    spent = [e for r in history["rounds"] if (e := epsilon_spent(r)) is not None]
+    so_far = (
+        f" Spent so far: epsilon {spent[-1]:.3g} of dp-epsilon-budget={budget:g} at delta {delta:g}." if spent else ""
+    )
+    if kind == "owner":
+        return (
+            "Owner-level differential privacy: the server received each owner's update in the clear, clipped it to "
+            f"dp-clip={config['dp-clip']:g} and released only the noisy average, so the models this run wrote say "
+            "little about whether any one owner took part." + so_far
+        )
+    if kind == "record":
+        return (
+            "Record-level differential privacy: each owner trained with DP-SGD on their own machine (every "
+            f"demonstration's gradient clipped to dp-clip={config['dp-clip']:g}, noise added before the update left), "
+            "so what the server received says little about any one demonstration."
+            + so_far.replace("epsilon", "the largest epsilon of any owner", 1)
+        )
+    return (
+        "Differential privacy is off (dp='off'): the server received each owner's update, alone and in the clear, "
+        "every round; an update can leak the frames it was trained on."
+    )
 
 
 def steps_cell(steps: list[int]) -> tuple[int, str] | None:
@@ -261,6 +301,7 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
     return _TEMPLATE.render(
         name=run_dir.name,
         status=status,
+        privacy=privacy_sentence(history, config),
         best=best,
         best_path=str(best_path),
         rollout=ROLLOUT.replace("POLICY", str(best_path)),

@@ -44,7 +44,7 @@ from zk0.logs import say
 from zk0.policy import PolicyBundle, set_trainable
 from zk0.rates import success_text
 from zk0.registry import DatasetEntry, Registry
-from zk0.report import write_report
+from zk0.report import epsilon_spent, write_report
 from zk0.stats import stats_from_record
 from zk0.tracking import Tracker
 from zk0.wire import CLIENT
@@ -102,6 +102,11 @@ class RoundArtifacts:
                 self.client_stats[index] = stats_from_record(content["stats"])
         if phase == "evaluate" and any("personal-action-mse" in content["metrics"] for content in replies):
             say(self.personal_line(server_round))
+
+    def record_privacy(self, server_round: int, spent: dict) -> None:
+        """Owner-level DP's epsilon once this round's model is released (``privacy`` in its JSON,
+        with the accountant's state a resumed run continues from)."""
+        self.history.add(server_round, "privacy", spent)
 
     def record_late(self, server_round: int, clients: list[int], nodes: list[int]) -> None:
         """The round's clients whose update missed the deadline (``late`` in its JSON); a client
@@ -338,9 +343,20 @@ class RoundArtifacts:
             + f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
             + (f"success {success_text(server)} in the simulator, " if "success-rate" in server else "")
+            + (f"{privacy}, " if (privacy := privacy_text(record, self.run)) else "")
             + f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
             + (f", best round {self.best['round']}" if self.best else "")
         )
+
+
+def privacy_text(record: dict, run: RunConfig) -> str:
+    """``epsilon 2.31 of 8 (owner-level)``, or with record-level DP the most any owner's
+    demonstrations have spent: what a round line says of the privacy spent so far."""
+    if (spent := epsilon_spent(record)) is None:
+        return ""
+    if run.dp == "owner":
+        return f"epsilon {spent:.3g} of {run.dp_epsilon_budget:g} (owner-level)"
+    return f"epsilon up to {spent:.3g} of {run.dp_epsilon_budget:g} (each owner's demonstrations)"
 
 
 def steps_text(steps: list[int], planned: int) -> str:

@@ -33,9 +33,11 @@ from zk0.internals import is_simulation, shorten_object_pull_backoff
 from zk0.logs import add_file_sink, prints_to_log, say, setup_logging
 from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, config_features, get_trainable, set_trainable
 from zk0.preflight import SIZED, check_federation
+from zk0.privacy import OwnerLevelDP, PrivacyBudgetSpent
 from zk0.registry import Registry, load_registry
 from zk0.report import REPORT_FILE
 from zk0.resume import ResumePoint, find_resume_point
+from zk0.robust import make_rule
 from zk0.round_artifacts import RoundArtifacts
 from zk0.server_optimisers import make_strategy, restore_state
 from zk0.tracking import Tracker
@@ -134,6 +136,25 @@ def preflight(run: RunConfig, registry: Registry, simulation: bool) -> LeRobotDa
     return report.server_meta
 
 
+def owner_privacy(run: RunConfig, owners: int, resumed: ResumePoint | None) -> OwnerLevelDP | None:
+    """Owner-level DP for ``dp = "owner"`` (``owners``: the registry's clients), continuing a resumed
+    run's accounting from its checkpoint round's record; None otherwise."""
+    if run.dp != "owner":
+        return None
+    state = resumed.rounds.get(resumed.round, {}).get("privacy", {}).get("accountant") if resumed else None
+    privacy = OwnerLevelDP(run, owners, state)
+    say(
+        "Owner-level differential privacy: each update clipped to {:g}, noise multiplier {:.3g}; epsilon so far {:.3g} "
+        "of dp-epsilon-budget={:g} at delta {:g} (Flower's RDP accountant)",
+        run.dp_clip,
+        privacy.noise_multiplier,
+        privacy.spent()["epsilon"],
+        run.dp_epsilon_budget,
+        run.dp_delta,
+    )
+    return privacy
+
+
 @contextmanager
 def refusals_in_one_sentence() -> Iterator[None]:
     """A refusal of the user's input (a ``Zk0Error``) logged as its one sentence, before Flower's
@@ -201,6 +222,8 @@ def main(grid: Grid, context: Context) -> None:
     )
     if resumed:
         restore_state(optimiser, resumed.server_state, list(initial), resumed.server_optimiser)
+    with refusals_in_one_sentence():
+        privacy = owner_privacy(run, len(registry.clients), resumed)
     strategy = ValidatingStrategy(
         optimiser,
         expected=array_signature(initial),
@@ -213,6 +236,8 @@ def main(grid: Grid, context: Context) -> None:
         proximal_mu=run.proximal_mu,
         update_clip=run.update_clip,
         averaging=run.averaging,
+        privacy=privacy,
+        rule=make_rule(run, optimiser.weighted_by_key),
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own
     # machine, never at a path of the server's) and what both ends must share.
@@ -237,6 +262,8 @@ def main(grid: Grid, context: Context) -> None:
             )
     except stopping.RunStopped:
         return  # Flower is ending the process, and it was said: no traceback, no failure
+    except PrivacyBudgetSpent as err:
+        say("{}", err)  # the run did what its privacy budget allows: an end, not a failure
     except Zk0Error as err:
         logger.error("zk0: {}", err)
         raise

@@ -204,6 +204,23 @@ class LocalTrainer:
         full = self.optimizer.state_dict()
         self.optimizer.load_state_dict({**full, "state": state})
 
+    def _may_step(self, done: int) -> bool:
+        """Whether the round may take another step after ``done`` (a private trainer's budget says)."""
+        return True
+
+    def _step(self, tracker: MetricsTracker, batch: dict) -> int:
+        """One optimizer step on ``batch`` with lerobot's ``update_policy``; the samples it trained on."""
+        update_policy(
+            tracker,
+            self.bundle.policy,
+            batch,
+            self.optimizer,
+            self.grad_clip_norm,
+            accelerator=self.accelerator,
+            lr_scheduler=self.scheduler,
+        )
+        return len(batch["action"])
+
     def fit(self, steps: int, mu: float, global_step: int, budget_s: float = 0.0) -> dict[str, float]:
         """Run ``steps`` optimizer steps from the weights already loaded; return the round's metrics.
 
@@ -225,7 +242,11 @@ class LocalTrainer:
         started = time.perf_counter()
         if self.bundle.device.type == "cuda":
             torch.cuda.reset_peak_memory_stats()
-        while done < steps and not (budget_s and done and time.perf_counter() - started >= budget_s):
+        while (
+            done < steps
+            and not (budget_s and done and time.perf_counter() - started >= budget_s)
+            and self._may_step(done)
+        ):
             t0 = time.perf_counter()
             try:
                 batch = self._next_batch()
@@ -236,16 +257,7 @@ class LocalTrainer:
                 continue
             batch = self._prepare(batch)
             tracker.dataloading_s = time.perf_counter() - t0
-            tracker, _ = update_policy(
-                tracker,
-                self.bundle.policy,
-                batch,
-                self.optimizer,
-                self.grad_clip_norm,
-                accelerator=self.accelerator,
-                lr_scheduler=self.scheduler,
-            )
-            samples += len(batch["action"])
+            samples += self._step(tracker, batch)
             done += 1
         elapsed = time.perf_counter() - started
         proximal = self.fedprox.loss()

@@ -1,0 +1,277 @@
+"""Owner-level DP (Flower's mechanism and accountant), robust rules (Flower's) and record-level DP
+(Opacus) on real Flower Messages, a real SmolVLA and real accountants: no mocks."""
+
+from __future__ import annotations
+
+import dp_accounting
+import numpy as np
+import pytest
+import torch
+from flwr.app import ArrayRecord
+
+from tests.test_aggregation import Recorder, reply
+from zk0.aggregation import ValidatingStrategy, array_signature
+from zk0.config import ConfigError, from_run_config
+from zk0.privacy import OwnerLevelDP, calibrated_noise
+from zk0.robust import make_rule
+from zk0.server_optimisers import make_strategy
+
+pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
+
+SIZE = 40_000  # weights per update: the noise's spread is measured over this many values
+
+
+def model(values: np.ndarray) -> ArrayRecord:
+    """A global model (or an update's result) of two tensors holding ``values``."""
+    return ArrayRecord(
+        {"w": torch.from_numpy(values[: SIZE // 2].copy()), "v": torch.from_numpy(values[SIZE // 2 :].copy())}
+    )
+
+
+def flat(record: ArrayRecord) -> np.ndarray:
+    return np.concatenate([record["w"].numpy().ravel(), record["v"].numpy().ravel()])
+
+
+class Observer(Recorder):
+    def record_privacy(self, rnd, spent):
+        self.recorded.append(("privacy", rnd, spent["epsilon"]))
+
+    def record_late(self, rnd, clients, nodes):
+        self.recorded.append(("late", rnd, clients, nodes))
+
+
+def strategy(run_config: str, owners: int = 4, server_optimiser: str = "fedavg") -> ValidatingStrategy:
+    """zk0's strategy with the run's privacy and rule, its global model at zero."""
+    run = from_run_config(parse(run_config))
+    inner = make_strategy(server_optimiser, 0.0, 0.5, min_train_nodes=1)
+    start = model(np.zeros(SIZE, dtype=np.float32))
+    strat = ValidatingStrategy(
+        inner,
+        expected=array_signature(start),
+        evaluates_in=lambda rnd: False,
+        observer=Observer([]),
+        last_round=run.num_server_rounds,
+        wire_dtype="float32",
+        update_clip=run.update_clip,
+        privacy=OwnerLevelDP(run, owners) if run.dp == "owner" else None,
+        rule=make_rule(run, inner.weighted_by_key),
+    )
+    strat.current = start
+    if server_optimiser != "fedavg":
+        inner.current_arrays = {name: array.numpy() for name, array in start.items()}
+    return strat
+
+
+def parse(run_config: str) -> dict:
+    """``"dp=owner dp-clip=1.0"`` as Flower hands a run config to the apps (typed values)."""
+    values = {}
+    for item in run_config.split():
+        key, value = item.split("=")
+        for kind in (int, float):
+            try:
+                values[key] = kind(value)
+                break
+            except ValueError:
+                continue
+        else:
+            values[key] = value
+    return values
+
+
+def updates(count: int, norm: float, seed: int = 0) -> list[np.ndarray]:
+    """``count`` random updates of L2 norm ``norm``."""
+    rng = np.random.default_rng(seed)
+    drawn = rng.normal(size=(count, SIZE)).astype(np.float32)
+    return [u * (norm / np.linalg.norm(u)) for u in drawn]
+
+
+def test_the_noise_matches_the_updates_averaged_when_a_deadline_drops_one_of_four():
+    """Four owners sampled, the fourth's update past the deadline: the three updates are clipped
+    to dp-clip and averaged, and the noise on the average has std ``z * clip / 3`` (Flower's
+    wrapper would add ``z * clip / 4``, the noise for four). Over 40,000 weights the sample
+    variance is within 5 of its standard errors (sqrt(2/n)) of the expected one: a false alarm
+    about once in 1.7 million runs; the noise for four owners is 54 standard errors away."""
+    z, clip = 2.0, 1.0
+    strat = strategy(f"dp=owner dp-clip={clip} dp-noise-multiplier={z} num-server-rounds=5")
+    strat.sampled = {1, 2, 3, 4}
+    sent = updates(3, norm=10.0)
+    result, _ = strat.aggregate_train(1, [reply(node, model(u), examples=10 * node) for node, u in enumerate(sent, 1)])
+    clipped_mean = np.mean([u * (clip / 10.0) for u in sent], axis=0)  # equal weights, whatever the samples
+    noise = flat(result) - clipped_mean
+    expected = (z * clip / 3) ** 2
+    tolerance = 5 * np.sqrt(2 / SIZE)
+    assert abs(noise.var() / expected - 1) < tolerance, (noise.var(), expected)
+    assert abs(noise.mean()) < 5 * np.sqrt(expected / SIZE)
+    assert abs(noise.var() / (z * clip / 4) ** 2 - 1) > 10 * tolerance, "the noise is not the noise for four"
+    assert strat.observer.recorded[-2][0] == "privacy"
+
+
+def test_clipping_bounds_each_update_and_the_weights_are_equal():
+    """Noise a millionth of the clip: the release is the equal-weight mean of the updates, each
+    clipped to dp-clip, so an owner sending a million times the others moves it by clip / n at most."""
+    strat = strategy("dp=owner dp-clip=0.5 dp-noise-multiplier=1e-6 dp-epsilon-budget=1e12 num-server-rounds=2")
+    small, huge = updates(1, norm=0.25, seed=1)[0], updates(1, norm=1e6, seed=2)[0]
+    replies = [reply(1, model(small), examples=1), reply(2, model(huge), examples=1000)]
+    result, _ = strat.aggregate_train(1, replies)
+    np.testing.assert_allclose(flat(result), (small + huge * (0.5 / 1e6)) / 2, atol=1e-5)
+    scales = [r.content["metrics"]["update-scale"] for r in replies]
+    assert scales[0] == 1.0 and scales[1] == pytest.approx(0.5 / 1e6)
+
+
+def test_epsilon_after_n_rounds_is_the_accountants_own_figure():
+    """Five releases: the epsilon the strategy reports equals Google's dp-accounting RDP accountant's
+    for five Gaussian mechanisms at the same noise (no sampling amplification), and the noise
+    calibrated for a budget over N rounds spends that budget in N rounds and no more."""
+    z = 1.7
+    strat = strategy(f"dp=owner dp-noise-multiplier={z} dp-epsilon-budget=1000 num-server-rounds=5")
+    for rnd in range(1, 6):
+        strat.aggregate_train(rnd, [reply(n, model(u), 1) for n, u in enumerate(updates(3, 2.0, seed=rnd), 1)])
+    accountant = dp_accounting.rdp.RdpAccountant()
+    accountant.compose(dp_accounting.SelfComposedDpEvent(dp_accounting.GaussianDpEvent(z), 5))
+    spent = strat.privacy.spent()
+    assert spent["releases"] == 5
+    assert spent["epsilon"] == pytest.approx(accountant.get_epsilon(1e-5), rel=1e-9)
+
+    noise = calibrated_noise(8.0, 1e-5, 20)
+    budgeted = dp_accounting.rdp.RdpAccountant()
+    budgeted.compose(dp_accounting.SelfComposedDpEvent(dp_accounting.GaussianDpEvent(noise), 20))
+    assert 7.99 < budgeted.get_epsilon(1e-5) <= 8.0
+
+
+def test_a_resumed_accountant_continues_and_a_spent_budget_is_one_sentence():
+    run = from_run_config({"dp": "owner", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 20.0})
+    first = OwnerLevelDP(run, 4)
+    for _ in range(3):
+        first.accountant.compose(first._event(4))
+    resumed = OwnerLevelDP(run, 4, first.spent()["accountant"])
+    assert resumed.spent()["epsilon"] == first.spent()["epsilon"] and resumed.spent()["releases"] == 3
+    with pytest.raises(
+        ConfigError, match=r"has spent epsilon 9.01 of dp-epsilon-budget=3 and one more round would pass it"
+    ):
+        OwnerLevelDP(from_run_config({"dp": "owner", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 3.0}), 4,
+                     first.spent()["accountant"])  # fmt: skip
+    with pytest.raises(ConfigError, match=r"'dp-noise-multiplier' = 0.1 spends more than dp-epsilon-budget=8"):
+        OwnerLevelDP(from_run_config({"dp": "owner", "dp-noise-multiplier": 0.1}), 4)
+
+
+@pytest.mark.parametrize(
+    ("config", "sentence"),
+    [
+        ({"dp": "yes"}, "Run-config key 'dp' got 'yes'; expected one of ['off', 'owner', 'record']."),
+        ({"aggregation": "mode"}, "Run-config key 'aggregation' got 'mode'; expected one of"),
+        ({"dp": "owner", "aggregation": "krum"}, "'aggregation' = 'krum' cannot go with dp='owner'"),
+        ({"dp": "owner", "averaging": "fednova"}, "'averaging' = 'fednova' cannot go with dp='owner'"),
+        ({"trim-fraction": 0.5}, "Run-config key 'trim-fraction' got 0.5; expected a value >= 0 and < 0.5"),
+        ({"dp-delta": 1.0}, "Run-config key 'dp-delta' got 1.0; expected a value > 0 and < 1"),
+        ({"dp-clip": 0.0}, "Run-config key 'dp-clip' got 0.0; expected a value > 0."),
+    ],
+)
+def test_bad_privacy_settings_are_one_sentence(config, sentence):
+    with pytest.raises(ConfigError) as refused:
+        from_run_config(config)
+    assert sentence in str(refused.value)
+
+
+HOSTILE = 16  # the hostile owner's node: 15 honest owners before it
+
+
+def hostile_round(run_config: str) -> tuple[float, float]:
+    """15 honest owners whose updates share a direction (plus their own noise), one hostile owner
+    sending the honest mean negated and scaled to 2.9x its norm (under update-clip=3 x the median):
+    how far the combination lands from the honest mean, against the honest mean's own norm."""
+    rng = np.random.default_rng(7)
+    direction = rng.normal(size=SIZE).astype(np.float32)
+    direction /= np.linalg.norm(direction)
+    honest = [direction + 0.1 * u for u in updates(HOSTILE - 1, 1.0, seed=3)]
+    target = np.mean(honest, axis=0)
+    hostile = -2.9 * target * (np.median([np.linalg.norm(h) for h in honest]) / np.linalg.norm(target))
+    strat = strategy(run_config, owners=HOSTILE)
+    replies = [reply(n, model(u), examples=10) for n, u in enumerate([*honest, hostile], 1)]
+    result, _ = strat.aggregate_train(1, replies)
+    assert all(r.content["metrics"]["update-scale"] == 1.0 for r in replies), "the hostile update passes the clip"
+    return float(np.linalg.norm(flat(result) - target)), float(np.linalg.norm(target))
+
+
+def test_a_hostile_owner_that_passes_the_clip_moves_the_mean_and_not_the_robust_rules():
+    """The mean is pulled a fifth of the honest update's length off by one owner of 16; Flower's
+    median, trimmed mean and Multi-Krum land within a fifth of the mean's error of the honest mean,
+    Krum (one honest update, with its own noise) within half of it."""
+    mean_error, honest_norm = hostile_round("aggregation=mean")
+    assert mean_error > 0.2 * honest_norm
+    for rule in ("median", "trimmed-mean", "multi-krum"):
+        error, _ = hostile_round(f"aggregation={rule} trim-fraction=0.1")
+        assert error < 0.2 * mean_error, rule
+    krum_error, _ = hostile_round("aggregation=krum")
+    assert krum_error < 0.5 * mean_error
+
+
+def test_the_server_optimiser_steps_from_the_robust_combination():
+    """Nesterov (the default) with momentum 0.5 steps 1.5x from a rule's combination, as from a mean."""
+    honest = updates(3, 1.0, seed=5)
+    strat = strategy("aggregation=median", server_optimiser="nesterov")
+    result, _ = strat.aggregate_train(1, [reply(n, model(u), 10) for n, u in enumerate(honest, 1)])
+    np.testing.assert_allclose(flat(result), 1.5 * np.median(honest, axis=0), rtol=1e-5, atol=1e-6)
+
+
+@pytest.fixture
+def private_client(registry):
+    """Client 0 (6 training demonstrations) built for record-level DP, 4 demonstrations a step expected."""
+    from zk0.client import build_client
+
+    run = from_run_config(
+        {"batch-size": 4, "lr": 1e-3, "dp": "record", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 11.0}
+    )
+    return build_client(run, registry.clients[0], registry.model_cameras())
+
+
+def test_each_step_draws_each_demonstration_with_probability_q_and_one_frame_of_it(private_client):
+    """A demonstration adds at most one frame to a step, and is drawn in about q of the steps
+    (5-sigma binomial bounds over 300 draws); the draw is a function of the step, so a restored
+    trainer draws what the first one did."""
+    trainer = private_client.trainer
+    dataset = trainer.split.train
+    assert trainer.sample_rate == pytest.approx(4 / 6)
+    drawn = {episode: 0 for episode in dataset.episodes}
+    first = None
+    for step in range(300):
+        batch = trainer._next_batch()
+        episodes = [] if batch is None else batch["episode_index"].tolist()
+        assert len(episodes) == len(set(episodes)), f"step {step} drew a demonstration twice"
+        for episode in episodes:
+            drawn[episode] += 1
+        first = batch if step == 0 else first
+    q, n = trainer.sample_rate, 300
+    for episode, count in drawn.items():
+        assert abs(count - q * n) < 5 * np.sqrt(n * q * (1 - q)), (episode, count)
+    trainer.restore(0, None)
+    again = trainer._next_batch()
+    assert torch.equal(again["index"], first["index"])
+
+
+def test_record_level_epsilon_is_opacus_accountants_and_the_budget_ends_training(private_client):
+    """Each private step is one sampled Gaussian mechanism in Opacus's RDP accountant; a round
+    stops before the step that would pass dp-epsilon-budget, and the next round is refused in
+    one sentence."""
+    from opacus.accountants import RDPAccountant
+
+    from zk0.record_privacy import RecordBudgetSpent
+
+    trainer = private_client.trainer
+    metrics = trainer.fit(4, 0.0, 0)
+    accountant = RDPAccountant()
+    for _ in range(4):
+        accountant.step(noise_multiplier=1.0, sample_rate=4 / 6)
+    assert metrics["local-steps"] == 4
+    assert metrics["record-epsilon"] == pytest.approx(accountant.get_epsilon(1e-5), rel=1e-9)
+    assert metrics["record-epsilon"] < 11.0
+
+    metrics = trainer.fit(100, 0.0, 4)
+    steps = 4 + metrics["local-steps"]
+    for _ in range(metrics["local-steps"]):
+        accountant.step(noise_multiplier=1.0, sample_rate=4 / 6)
+    assert metrics["record-epsilon"] == pytest.approx(accountant.get_epsilon(1e-5), rel=1e-9)
+    assert metrics["record-epsilon"] <= 11.0 and metrics["local-steps"] == 2
+    accountant.step(noise_multiplier=1.0, sample_rate=4 / 6)
+    assert accountant.get_epsilon(1e-5) > 11.0, f"one more step than the {steps} taken passes the budget"
+    with pytest.raises(RecordBudgetSpent, match=r"its demonstrations have spent epsilon .* of dp-epsilon-budget=11"):
+        trainer.fit(4, 0.0, steps)

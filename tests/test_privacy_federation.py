@@ -1,0 +1,79 @@
+"""Differential privacy end to end: the real `flwr run` on a local simulation SuperLink, 2 clients."""
+
+from __future__ import annotations
+
+import json
+
+import dp_accounting
+import pytest
+
+from zk0.simulation import cpu_federation, flwr_run, local_federation
+
+pytestmark = pytest.mark.e2e
+
+ONE_ACTOR = cpu_federation(num_supernodes=2, actors=1)
+SHORT = "local-steps=2 batch-size=4 eval-batches=1"
+
+
+@pytest.fixture(scope="module")
+def flower_env(tmp_path_factory):
+    with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
+        yield env
+
+
+def history(run_dir) -> list[dict]:
+    return json.loads((run_dir / "server" / "metrics_history.json").read_text())["rounds"]
+
+
+def rdp_epsilon(noise: float, releases: int) -> float:
+    accountant = dp_accounting.rdp.RdpAccountant()
+    accountant.compose(dp_accounting.SelfComposedDpEvent(dp_accounting.GaussianDpEvent(noise), releases))
+    return accountant.get_epsilon(1e-5)
+
+
+def test_owner_level_dp_stops_at_its_budget_with_a_checkpoint_and_a_resumed_run_continues_epsilon(flower_env, tmp_path):
+    """Noise multiplier 2: two releases spend epsilon 3.19, a third would spend 4.01. With a budget
+    of 3.5 the three-round run ends after round 2 in one sentence, exit 0, with round 2's model
+    as a checkpoint; the round line, the round's JSON, report.html and each owner's log say the
+    epsilon. Resumed with a budget of 5, round 3 brings it to the accountant's 4.01."""
+    out = tmp_path / "outputs"
+    dp = "dp='owner' dp-noise-multiplier=2.0 dp-clip=0.5 num-server-rounds=3"
+    log = flwr_run(flower_env, f"{SHORT} {dp} dp-epsilon-budget=3.5 output-dir='{out}'", ONE_ACTOR)
+    (run,) = list(out.iterdir())
+    rounds = history(run)
+    assert [r["round"] for r in rounds] == [0, 1, 2], log[-3000:]
+    assert "Exit Code" not in log
+    assert (
+        "Round 2 spent epsilon 3.19 at delta 1e-05, and round 3 would take it to 4.01, past dp-epsilon-budget=3.5"
+        in log
+    )
+    assert (run / "models" / "checkpoint_round_2").is_dir()
+    assert rounds[2]["privacy"]["epsilon"] == pytest.approx(rdp_epsilon(2.0, 2), rel=1e-9)
+    assert rounds[2]["privacy"]["releases"] == 2
+    assert "epsilon 3.19 of 3.5 (owner-level)" in log
+    assert "Owner-level differential privacy" in (run / "report.html").read_text()
+    client_log = (run / "clients" / "client_0" / "client.log").read_text()
+    assert "the models released before round 2 have spent epsilon 2.166 at delta 1e-05" in client_log
+    assert all(c["train"]["update-norm"] > 0 for c in rounds[1]["clients"].values())
+
+    log = flwr_run(flower_env, f"{SHORT} {dp} dp-epsilon-budget=5.0 output-dir='{out}' resume-from='{run}'", ONE_ACTOR)
+    rounds = history(run)
+    assert [r["round"] for r in rounds] == [0, 1, 2, 3], log[-3000:]
+    assert rounds[3]["privacy"]["releases"] == 3
+    assert rounds[3]["privacy"]["epsilon"] == pytest.approx(rdp_epsilon(2.0, 3), rel=1e-9)
+
+
+def test_record_level_dp_says_each_owners_epsilon(flower_env, tmp_path):
+    """Each owner trains with DP-SGD; its epsilon is in its reply, the round line, the JSON, the
+    report and its own log, and the run trains (the global model moves)."""
+    out = tmp_path / "outputs"
+    log = flwr_run(flower_env, f"{SHORT} dp='record' num-server-rounds=2 output-dir='{out}'", ONE_ACTOR)
+    (run,) = list(out.iterdir())
+    rounds = history(run)
+    assert [r["round"] for r in rounds] == [0, 1, 2], log[-3000:]
+    spent = [c["train"]["record-epsilon"] for c in rounds[2]["clients"].values()]
+    assert len(spent) == 2 and all(0 < e <= 8.0 for e in spent)
+    assert f"epsilon up to {max(spent):.3g} of 8 (each owner's demonstrations)" in log
+    assert "Record-level differential privacy" in (run / "report.html").read_text()
+    client_log = (run / "clients" / "client_1" / "client.log").read_text()
+    assert "Privacy spent by synth-so100-stacking's demonstrations: epsilon" in client_log
