@@ -35,7 +35,8 @@ def test_owner_level_dp_stops_at_its_budget_with_a_checkpoint_and_a_resumed_run_
     """Noise multiplier 2: two releases spend epsilon 3.19, a third would spend 4.01. With a budget
     of 3.5 the three-round run ends after round 2 in one sentence, exit 0, with round 2's model
     as a checkpoint; the round line, the round's JSON, report.html and each owner's log say the
-    epsilon. Resumed with a budget of 5, round 3 brings it to the accountant's 4.01."""
+    epsilon; the owners' normalisation statistics (their min and max among them) never reach the
+    server. Resumed with a budget of 5, round 3 brings it to the accountant's 4.01."""
     out = tmp_path / "outputs"
     dp = "dp='owner' dp-noise-multiplier=2.0 dp-clip=0.5 num-server-rounds=3"
     log = flwr_run(flower_env, f"{SHORT} {dp} dp-epsilon-budget=3.5 output-dir='{out}'", ONE_ACTOR)
@@ -48,6 +49,7 @@ def test_owner_level_dp_stops_at_its_budget_with_a_checkpoint_and_a_resumed_run_
         in log
     )
     assert (run / "models" / "checkpoint_round_2").is_dir()
+    assert not list(run.glob("models/*/client_stats/*.json")), "under DP the owners' statistics stay home"
     assert rounds[2]["privacy"]["epsilon"] == pytest.approx(rdp_epsilon(2.0, 2), rel=1e-9)
     assert rounds[2]["privacy"]["releases"] == 2
     assert "epsilon 3.19 of 3.5 (owner-level)" in log

@@ -261,10 +261,11 @@ def _train(
                     "budget-s": budget,
                 }
             ),
-            "stats": stats_to_record(session.bundle.stats),
             CLIENT: identity(session),
         }
     )
+    if run.dp == "off":  # under DP the statistics (each feature's min and max among them) stay home
+        reply["stats"] = stats_to_record(session.bundle.stats)
     if evaluation:
         reply[EVALUATION] = ConfigRecord(dict(evaluation))  # one MetricRecord per reply, as Flower requires
     return reply

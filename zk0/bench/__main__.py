@@ -13,6 +13,7 @@ from zk0.bench import (
     inputs,
     learning,
     memory,
+    privacy,
     robust,
     round,
     scale,
@@ -40,6 +41,7 @@ BENCHMARKS = {
     "hetero": hetero,
     "scale": scale,
     "soak": soak,
+    "privacy": privacy,
 }
 
 

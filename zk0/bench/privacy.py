@@ -1,0 +1,227 @@
+"""Privacy: what differential privacy and robust aggregation cost in closed loop, and what one hostile owner does.
+
+On ``--owners`` simulated SO-101 owners generated from one ``[tool.zk0.owners]`` table (``kind =
+"sim-cube"``, ``--demos`` demonstrations each, recorded once), every run through the real app
+(``flwr run``, simulated clients), once per ``--seeds`` training seed:
+
+- **non-private**: ``dp = "off"``, the weighted mean;
+- **record e=E** for each ``--epsilons`` E: ``dp = "record"``, each owner's DP-SGD noise calibrated
+  by Opacus so that the run spends E (at ``--delta``) of each owner's demonstrations;
+- **owner e=E**: ``dp = "owner"``, Flower's central DP calibrated by dp-accounting so that the
+  run's rounds spend E, each update clipped to the median update norm the non-private run's
+  first round measured (the usual choice: about half the updates are clipped);
+- for each ``--aggregations`` rule A, **A, hostile**: the last owner sends its trained update
+  negated and scaled by ``--hostile-factor`` (2.9: under ``update-clip = 3`` times the others'
+  median, so the clip passes it), a real ClientApp (zk0.bench.robust's); and **A** without it
+  (the rule's cost when nobody attacks; ``mean`` without it is the non-private run).
+
+Every final model is rolled out on the same ``--sim-episodes`` seeded episodes in the server's
+span of conditions: success with its 95% interval, and McNemar's test against the same seed's
+non-private model. Tables give the mean over seeds and the interval over every seed's episodes.
+Prints the tables and writes JSON (``--json``).
+
+    python -m zk0.bench privacy [--owners 16] [--demos 10] [--rounds 20] [--local-steps 75]
+        [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
+        [--aggregations mean median trimmed-mean krum multi-krum] [--hostile-factor 2.9]
+        [--sim-episodes 100] [--output-dir outputs/bench-privacy] [--json FILE]
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from zk0.artifacts import checkpoints
+from zk0.bench.client import write_json
+from zk0.bench.models import SERVER, closed_loop_all, generate
+from zk0.bench.robust import scaled_client_app
+from zk0.config import AGGREGATIONS, OFFLINE_MODELS, RunConfig
+from zk0.data import open_evaluation, open_metadata
+from zk0.errors import OneSentenceParser, positive
+from zk0.logs import native_output_to
+from zk0.policy import build_policy
+from zk0.privacy import calibrated_noise
+from zk0.rates import mcnemar, rate_text, wilson
+from zk0.registry import PROJECT_ROOT, load_registry
+from zk0.resume import checkpoint_trainable
+from zk0.simulation import run_federation
+
+NON_PRIVATE = "non-private"
+
+
+def owners_registry(folder: Path, owners: int) -> Path:
+    """A registry of ``owners`` generated sim-cube owners (and their server set)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "owners-registry.toml"
+    path.write_text(f'[tool.zk0.owners]\ncount = {owners}\nkind = "sim-cube"\n')
+    return path
+
+
+def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
+    """label -> the run-config keys it adds, and whether its last owner is hostile."""
+    runs: dict[str, dict] = {NON_PRIVATE: {"keys": {}, "hostile": False}}
+    for epsilon in args.epsilons:
+        privacy = {"dp-epsilon-budget": epsilon, "dp-delta": args.delta}
+        runs[f"record e={epsilon:g}"] = {"keys": {"dp": "record", **privacy}, "hostile": False}
+        if owner_clip is not None:
+            runs[f"owner e={epsilon:g}"] = {"keys": {"dp": "owner", "dp-clip": owner_clip, **privacy}, "hostile": False}
+    for rule in args.aggregations:
+        if rule != "mean":
+            runs[rule] = {"keys": {"aggregation": rule}, "hostile": False}
+        runs[f"{rule}, hostile"] = {"keys": {"aggregation": rule}, "hostile": True}
+    return runs
+
+
+def run_config(args, registry: Path, seed: int, keys: dict) -> str:
+    settings = {
+        "registry": str(registry),
+        "server-eval-dataset": "sim-so101-eval-cube",
+        "model": args.model,
+        "num-server-rounds": args.rounds,
+        "local-steps": args.local_steps,
+        "lr": args.lr,
+        "seed": seed,
+        "checkpoint-interval": args.rounds,
+        "min-train-clients": args.owners - 1,  # a round goes on without one owner that fails
+        "eval-batches": 1,
+        **keys,
+    }
+    return " ".join(f"{k}={json.dumps(v)}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
+
+
+def median_update_norm(history: dict) -> float:
+    """The median of the owners' update norms in round 1 (what owner-level DP clips to)."""
+    clients = history["rounds"][1]["clients"].values()
+    return statistics.median(c["train"]["update-norm"] for c in clients if "update-norm" in c.get("train", {}))
+
+
+def rollouts(args, registry_path: Path, finals: dict[str, Path]) -> dict[str, dict]:
+    """Every run's final model on the same seeded episodes in the server's conditions."""
+    registry = load_registry(str(registry_path))
+    run = RunConfig(registry=str(registry_path), server_eval_dataset=registry.server.name, model=args.model)
+    entry = registry.get(run.server_eval_dataset)
+    meta = open_metadata(entry)
+    bundle = build_policy(run, meta, entry, registry.model_cameras())
+    split = open_evaluation(entry, meta, bundle.policy.config, run)
+    models = {name: checkpoint_trainable(path, bundle).to_torch_state_dict() for name, path in finals.items()}
+    rolled = closed_loop_all({SERVER: list(models)}, models, {SERVER: (bundle, split, None)}, args.sim_episodes,
+                             run.seed, lambda line: print(f"  {line}", flush=True))  # fmt: skip
+    return {name: row[SERVER] for name, row in rolled.items()}
+
+
+def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> dict[str, dict]:
+    """For each run: its mean rate over seeds, the interval over every seed's episodes, its ratio
+    to the non-private run's, and McNemar's test against it over every seed's paired episodes."""
+    table = {}
+    base = [o for seed in seeds for o in success[f"{NON_PRIVATE} seed {seed}"]["outcomes"]]
+    for label in labels:
+        outcomes = [o for seed in seeds for o in success[f"{label} seed {seed}"]["outcomes"]]
+        low, high = wilson(sum(outcomes), len(outcomes))
+        rate = sum(outcomes) / len(outcomes)
+        table[label] = {
+            "success-rate": rate,
+            "low": low,
+            "high": high,
+            "episodes": len(outcomes),
+            "per-seed": [success[f"{label} seed {seed}"]["success-rate"] for seed in seeds],
+            "vs-non-private": rate / (sum(base) / len(base)) if sum(base) else None,
+            "mcnemar-p": mcnemar(outcomes, base),
+        }
+    return table
+
+
+def build_parser() -> OneSentenceParser:
+    """The benchmark's command line (the docs' commands are checked against it)."""
+    parser = OneSentenceParser(prog="python -m zk0.bench privacy", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--owners", type=positive(int), default=16)
+    parser.add_argument("--demos", type=positive(int), default=10, help="demonstrations per owner")
+    parser.add_argument("--rounds", type=positive(int), default=20)
+    parser.add_argument("--local-steps", type=positive(int), default=75)
+    parser.add_argument("--model", choices=OFFLINE_MODELS, default="tiny-128")
+    parser.add_argument("--lr", type=positive(float), default=1e-3)
+    parser.add_argument("--epsilons", type=positive(float), nargs="*", default=[8.0, 2.0])
+    parser.add_argument("--delta", type=positive(float), default=1e-5)
+    parser.add_argument("--no-owner-level", action="store_true", help="skip the owner-level DP runs")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[42, 43])
+    parser.add_argument("--aggregations", nargs="*", choices=AGGREGATIONS, default=list(AGGREGATIONS))
+    parser.add_argument("--hostile-factor", type=float, default=-2.9)
+    parser.add_argument("--sim-episodes", type=positive(int), default=100)
+    parser.add_argument("--output-dir", default="outputs/bench-privacy")
+    parser.add_argument("--json", default=None, help="write the figures here")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.owners < 4:
+        parser.error(f"--owners got {args.owners}; expected 4 or more (one hostile owner and three to outvote it)")
+    if args.demos <= RunConfig.eval_episodes:
+        parser.error(
+            f"--demos got {args.demos}; expected more than the {RunConfig.eval_episodes} each owner holds out (eval-episodes)"
+        )
+    if len(set(args.seeds)) != len(args.seeds):
+        parser.error(f"--seeds got {args.seeds}; expected different seeds")
+    out = Path(args.output_dir).resolve()
+    registry = owners_registry(out, args.owners)
+    with native_output_to(out / "assets.log"):
+        generate(load_registry(str(registry)), args.demos)
+    hostile_app = scaled_client_app(out / "hostile-app", args.owners - 1, args.hostile_factor)
+    started = time.perf_counter()
+    figures: dict = {"settings": vars(args), "runs": {}}
+    finals: dict[str, Path] = {}
+
+    def train(label: str, seed: int, plan: dict) -> dict | None:
+        name = f"{label} seed {seed}"
+        app = hostile_app if plan["hostile"] else PROJECT_ROOT
+        config = run_config(args, registry, seed, plan["keys"])
+        history = run_federation(config, args.owners, out / name.replace(" ", "-"), name, app)
+        if history is not None:
+            figures["runs"][name] = {"wall-s": history["rounds"][-1]["wall-s"], "config": plan["keys"]}
+            finals[name] = checkpoints(Path(history["run-dir"]))[-1][1]
+            print(f"  {name}: trained in {figures['runs'][name]['wall-s']:.0f} s", flush=True)
+        return history
+
+    for seed in args.seeds:
+        first = train(NON_PRIVATE, seed, planned_runs(args, None)[NON_PRIVATE])
+        if first is None:
+            return 1
+        clip = median_update_norm(first)
+        figures["runs"][f"{NON_PRIVATE} seed {seed}"]["median-update-norm"] = clip
+        plan = planned_runs(args, None if args.no_owner_level else clip)
+        labels = list(plan)
+        for label, spec in list(plan.items())[1:]:
+            if train(label, seed, spec) is None:
+                return 1
+    figures["training-wall-s"] = time.perf_counter() - started
+    figures["success"] = rollouts(args, registry, finals)
+    figures["table"] = summary(figures["success"], args.seeds, labels)
+    figures["owner-noise"] = {
+        f"e={e:g}": calibrated_noise(e, args.delta, args.rounds) for e in args.epsilons
+    }  # the noise multiplier on each round's sum: its std on the average is this x clip / owners
+    figures["wall-s"] = time.perf_counter() - started
+    report(figures, args)
+    write_json(args.json, figures)
+    return 0
+
+
+def report(figures: dict, args) -> None:
+    print(
+        f"\n{args.owners} sim-cube owners x {args.demos} demonstrations, {args.rounds} rounds x {args.local_steps} "
+        f"steps, {args.model}; success on {args.sim_episodes} seeded episodes per seed in the server's span, seeds "
+        f"{args.seeds}:"
+    )
+    print(f"{'run':<26} {'success (all seeds)':<26} {'per seed':<18} {'/ non-private':<14} McNemar p")
+    for label, row in figures["table"].items():
+        ratio = "-" if row["vs-non-private"] is None else f"{row['vs-non-private']:.2f}x"
+        seeds = ", ".join(f"{100 * r:.0f}%" for r in row["per-seed"])
+        text = rate_text(row["success-rate"], row["episodes"])
+        print(f"{label:<26} {text:<26} {seeds:<18} {ratio:<14} {row['mcnemar-p']:.2g}")
+    print(f"wall time: {figures['wall-s'] / 60:.0f} min ({figures['training-wall-s'] / 60:.0f} training)")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
