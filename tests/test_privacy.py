@@ -275,3 +275,36 @@ def test_record_level_epsilon_is_opacus_accountants_and_the_budget_ends_training
     assert accountant.get_epsilon(1e-5) > 11.0, f"one more step than the {steps} taken passes the budget"
     with pytest.raises(RecordBudgetSpent, match=r"its demonstrations have spent epsilon .* of dp-epsilon-budget=11"):
         trainer.fit(4, 0.0, steps)
+
+
+def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(tmp_path, capsys):
+    """What ``python -m zk0.bench privacy`` trains (its flwr runs are the federation tests' own),
+    and its table: rates over every seed's episodes, each against the same seed's non-private
+    model, pairwise; ``--seeds-from`` refuses figures of other settings in one sentence."""
+    import json
+
+    from zk0.bench.privacy import NON_PRIVATE, build_parser, earlier_seeds, planned_runs, summary
+
+    args = build_parser().parse_args(["--epsilons", "8", "--aggregations", "mean", "median"])
+    plan = planned_runs(args, owner_clip=0.3)
+    assert list(plan) == [NON_PRIVATE, "record e=8", "owner e=8", "mean, hostile", "median", "median, hostile"]
+    assert plan["owner e=8"]["keys"] == {"dp": "owner", "dp-clip": 0.3, "dp-epsilon-budget": 8.0, "dp-delta": 1e-5}
+    assert plan["median, hostile"] == {"keys": {"aggregation": "median"}, "hostile": True}
+    assert "owner e=8" not in planned_runs(args, owner_clip=None)
+
+    outcomes = {NON_PRIVATE: [1, 1, 1, 1, 0, 0, 0, 0], "median": [1, 1, 0, 0, 0, 0, 0, 0]}
+    success = {f"{label} seed {seed}": {"outcomes": o, "success-rate": sum(o) / 8} for label, o in outcomes.items()
+               for seed in (42, 43)}  # fmt: skip
+    table = summary(success, [42, 43], list(outcomes))
+    assert table["median"]["success-rate"] == 0.25 and table["median"]["episodes"] == 16
+    assert table["median"]["vs-non-private"] == pytest.approx(0.5)
+    assert table["median"]["mcnemar-p"] == pytest.approx(0.125)  # 4 discordant episodes, all one way
+
+    earlier = tmp_path / "earlier.json"
+    earlier.write_text(json.dumps({"settings": {**vars(args), "owners": 8, "seeds": [41]}}))
+    parser = build_parser()
+    with pytest.raises(SystemExit):
+        earlier_seeds(parser.parse_args(["--epsilons", "8", "--aggregations", "mean", "median",
+                                         "--seeds-from", str(earlier)]), parser)  # fmt: skip
+    said = capsys.readouterr().err
+    assert f"--seeds-from {earlier} was run with --owners 8, this run with 16; expected the same settings" in said

@@ -263,6 +263,7 @@ def main(grid: Grid, context: Context) -> None:
     except stopping.RunStopped:
         return  # Flower is ending the process, and it was said: no traceback, no failure
     except PrivacyBudgetSpent as err:
+        artifacts.finish_writes()  # models/best may still be being written
         say("{}", err)  # the run did what its privacy budget allows: an end, not a failure
     except Zk0Error as err:
         logger.error("zk0: {}", err)

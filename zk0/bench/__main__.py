@@ -17,6 +17,7 @@ from zk0.bench import (
     robust,
     round,
     scale,
+    secagg,
     sim,
     sim_learning,
     soak,
@@ -42,6 +43,7 @@ BENCHMARKS = {
     "scale": scale,
     "soak": soak,
     "privacy": privacy,
+    "secagg": secagg,
 }
 
 

@@ -23,7 +23,10 @@ Prints the tables and writes JSON (``--json``).
     python -m zk0.bench privacy [--owners 16] [--demos 10] [--rounds 20] [--local-steps 75]
         [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
         [--aggregations mean median trimmed-mean krum multi-krum] [--hostile-factor 2.9]
-        [--sim-episodes 100] [--output-dir outputs/bench-privacy] [--json FILE]
+        [--sim-episodes 100] [--output-dir outputs/bench-privacy] [--json FILE] [--seeds-from JSON]
+
+``--seeds-from`` adds the seeds of an earlier run of the same settings (its JSON) to the tables,
+so seeds can be trained one invocation at a time.
 """
 
 from __future__ import annotations
@@ -133,6 +136,26 @@ def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> di
     return table
 
 
+SAME = ("owners", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
+        "aggregations", "hostile_factor", "sim_episodes")  # fmt: skip
+
+
+def earlier_seeds(args, parser: OneSentenceParser) -> dict:
+    """``--seeds-from``'s figures, refused in one sentence when trained with other settings or seeds."""
+    earlier = json.loads(Path(args.seeds_from).read_text())
+    for key in SAME:
+        if earlier["settings"][key] != getattr(args, key):
+            parser.error(
+                f"--seeds-from {args.seeds_from} was run with --{key.replace('_', '-')} "
+                f"{earlier['settings'][key]}, this run with {getattr(args, key)}; expected the same settings"
+            )
+    if set(earlier["settings"]["seeds"]) & set(args.seeds):
+        parser.error(
+            f"--seeds-from {args.seeds_from} has seeds {earlier['settings']['seeds']} already; expected others"
+        )
+    return earlier
+
+
 def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench privacy", description=__doc__.split("\n\n")[0])
@@ -151,6 +174,11 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument("--sim-episodes", type=positive(int), default=100)
     parser.add_argument("--output-dir", default="outputs/bench-privacy")
     parser.add_argument("--json", default=None, help="write the figures here")
+    parser.add_argument(
+        "--seeds-from",
+        default=None,
+        help="a JSON this benchmark wrote with the same settings: its seeds join the table",
+    )
     return parser
 
 
@@ -198,7 +226,13 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
     figures["training-wall-s"] = time.perf_counter() - started
     figures["success"] = rollouts(args, registry, finals)
-    figures["table"] = summary(figures["success"], args.seeds, labels)
+    seeds = list(args.seeds)
+    if args.seeds_from:
+        earlier = earlier_seeds(args, parser)
+        figures["success"] |= earlier["success"]
+        figures["runs"] |= earlier["runs"]
+        seeds = earlier["settings"]["seeds"] + seeds
+    figures["table"] = summary(figures["success"], seeds, labels)
     figures["owner-noise"] = {
         f"e={e:g}": calibrated_noise(e, args.delta, args.rounds) for e in args.epsilons
     }  # the noise multiplier on each round's sum: its std on the average is this x clip / owners
