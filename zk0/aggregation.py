@@ -5,7 +5,10 @@ run chose: zk0.server_optimisers) and lets it sample, average and step as it doe
 it adds what a federation of robot owners needs: replies whose arrays are non-finite or do
 not match the global model's names/shapes/dtypes are rejected and logged, not averaged; an
 update more than ``update-clip`` times the others' median size is scaled down to that median
-(one client's broken normalisation, bug or scaled update cannot wreck the model); FedProx's
+(one client's broken normalisation, bug or scaled update cannot wreck the model); with
+``aggregation`` one of Flower's robust rules combines the updates instead of the mean
+(zk0.robust), and with ``dp = "owner"`` Flower's DP mechanism clips, averages and noises them
+(zk0.privacy); either way the wrapped strategy's server optimiser steps from the result; FedProx's
 ``proximal-mu`` goes into every train config, whatever the optimiser; federated evaluation runs
 every ``eval-frequency`` rounds; a resumed run keeps its round numbers; and each client's own
 metrics and dataset statistics, and the end of every round, go to an observer
