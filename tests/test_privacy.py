@@ -273,6 +273,9 @@ def test_record_level_epsilon_is_opacus_accountants_and_the_budget_ends_training
     assert metrics["record-epsilon"] <= 11.0 and metrics["local-steps"] == 2
     accountant.step(noise_multiplier=1.0, sample_rate=4 / 6)
     assert accountant.get_epsilon(1e-5) > 11.0, f"one more step than the {steps} taken passes the budget"
+    from zk0.training import metrics_tracker
+
+    assert trainer._step(metrics_tracker(4, 100, 10), None) == 0, "a draw of no demonstration is a noise-only step"
     with pytest.raises(RecordBudgetSpent, match=r"its demonstrations have spent epsilon .* of dp-epsilon-budget=11"):
         trainer.fit(4, 0.0, steps)
 

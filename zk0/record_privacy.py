@@ -179,12 +179,12 @@ class PrivateTrainer(LocalTrainer):
         for grads, p in zip(per_sample, params, strict=True):
             p.grad = None
             p.grad_sample = torch.stack(grads) if grads else torch.zeros((0, *p.shape), device=p.device)
-        norms = torch.stack([g.reshape(size, -1).norm(dim=1) for g in (p.grad_sample for p in params)]).norm(dim=0)
+        norms = torch.stack([p.grad_sample.reshape(size, -1).norm(dim=1) for p in params]).norm(dim=0) if size else None
         self.private_optimizer.step()
         self.private_optimizer.zero_grad(set_to_none=True)
         self.scheduler.step()
         tracker.loss = sum(losses) / size if size else 0.0
-        tracker.grad_norm = float(norms.mean()) if size else 0.0
+        tracker.grad_norm = float(norms.mean()) if norms is not None else 0.0
         tracker.lr = self.optimizer.param_groups[0]["lr"]
         tracker.update_s = time.perf_counter() - started
         return size
