@@ -114,6 +114,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         ),
         (
             bench,
+            ["gpu", "--stages", "step-eager,compiled"],
+            "python -m zk0.bench gpu: --stages got 'step-eager,compiled'; expected a comma-separated list of "
+            "step-eager, step-compiled, memory, deployment, exchange; see python -m zk0.bench gpu --help.",
+        ),
+        (
+            bench,
             ["learning", "--peft", "lora", "--lora-lr", "fast"],
             "python -m zk0.bench learning: argument --lora-lr: got 'fast'; expected float > 0; "
             "see python -m zk0.bench learning --help.",
