@@ -114,6 +114,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         ),
         (
             bench,
+            ["privacy", "--registry", "/nowhere/registry.toml"],
+            "python -m zk0.bench privacy: --registry: Registry file '/nowhere/registry.toml' cannot be read "
+            "(No such file or directory); see python -m zk0.bench privacy --help.",
+        ),
+        (
+            bench,
             ["gpu", "--stages", "step-eager,compiled"],
             "python -m zk0.bench gpu: --stages got 'step-eager,compiled'; expected a comma-separated list of "
             "step-eager, step-compiled, memory, deployment, exchange; see python -m zk0.bench gpu --help.",

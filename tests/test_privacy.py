@@ -7,7 +7,8 @@ import dp_accounting
 import numpy as np
 import pytest
 import torch
-from flwr.app import ArrayRecord
+from flwr.app import ArrayRecord, Message, MessageType, MetricRecord, RecordDict
+from flwr.serverapp.strategy import FedAvg
 
 from tests.test_aggregation import Recorder, reply
 from zk0.aggregation import ValidatingStrategy, array_signature
@@ -211,6 +212,24 @@ def test_the_server_optimiser_steps_from_the_robust_combination():
     strat = strategy("aggregation=median", server_optimiser="nesterov")
     result, _ = strat.aggregate_train(1, [reply(n, model(u), 10) for n, u in enumerate(honest, 1)])
     np.testing.assert_allclose(flat(result), 1.5 * np.median(honest, axis=0), rtol=1e-5, atol=1e-6)
+
+
+def test_dp_off_is_flowers_weighted_mean_byte_for_byte():
+    """``dp = "off"`` with the mean: the release is exactly what Flower's own FedAvg makes of the same
+    updates (weighted by samples, nothing clipped, no noise), to the last bit of every weight."""
+    sent = updates(3, norm=1.0, seed=7)
+    strat = strategy("dp=off aggregation=mean num-server-rounds=2")
+    result, _ = strat.aggregate_train(1, [reply(n, model(u), examples=7 * n) for n, u in enumerate(sent, 1)])
+    plain = [
+        Message(
+            RecordDict({"arrays": model(u), "metrics": MetricRecord({"num-examples": 7 * n})}),
+            reply_to=Message(RecordDict({}), dst_node_id=n, message_type=MessageType.TRAIN),
+        )
+        for n, u in enumerate(sent, 1)
+    ]
+    flowers, _ = FedAvg().aggregate_train(1, plain)
+    assert flat(result).tobytes() == flat(flowers).tobytes()
+    assert strat.privacy is None and strat.rule is None
 
 
 @pytest.fixture

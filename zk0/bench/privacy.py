@@ -1,8 +1,8 @@
 """Privacy: what differential privacy and robust aggregation cost in closed loop, and what one hostile owner does.
 
 On ``--owners`` simulated SO-101 owners generated from one ``[tool.zk0.owners]`` table (``kind =
-"sim-cube"``, ``--demos`` demonstrations each, recorded once), every run through the real app
-(``flwr run``, simulated clients), once per ``--seeds`` training seed:
+"sim-cube"``), or on ``--registry``'s client sets, ``--demos`` demonstrations each (recorded once),
+every run through the real app (``flwr run``, simulated clients), once per ``--seeds`` training seed:
 
 - **non-private**: ``dp = "off"``, the weighted mean;
 - **record e=E** for each ``--epsilons`` E: ``dp = "record"``, each owner's DP-SGD noise calibrated
@@ -20,7 +20,7 @@ span of conditions: success with its 95% interval, and McNemar's test against th
 non-private model. Tables give the mean over seeds and the interval over every seed's episodes.
 Prints the tables and writes JSON (``--json``).
 
-    python -m zk0.bench privacy [--owners 16] [--demos 10] [--rounds 20] [--local-steps 75]
+    python -m zk0.bench privacy [--owners 16 | --registry configs/sim-cube-registry.toml] [--demos 10] [--rounds 20] [--local-steps 75]
         [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
         [--aggregations mean median trimmed-mean krum multi-krum] [--hostile-factor 2.9]
         [--sim-episodes 100] [--output-dir outputs/bench-privacy] [--json FILE] [--seeds-from JSON]
@@ -43,7 +43,7 @@ from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.robust import scaled_client_app
 from zk0.config import AGGREGATIONS, OFFLINE_MODELS, RunConfig
 from zk0.data import open_evaluation, open_metadata
-from zk0.errors import OneSentenceParser, positive
+from zk0.errors import OneSentenceParser, Zk0Error, positive
 from zk0.logs import native_output_to
 from zk0.policy import build_policy
 from zk0.privacy import calibrated_noise
@@ -61,6 +61,14 @@ def owners_registry(folder: Path, owners: int) -> Path:
     path = folder / "owners-registry.toml"
     path.write_text(f'[tool.zk0.owners]\ncount = {owners}\nkind = "sim-cube"\n')
     return path
+
+
+def owner_registry(parser: OneSentenceParser, path: Path):
+    """``--registry``'s registry, refused in one sentence if it cannot be read."""
+    try:
+        return load_registry(str(path))
+    except (OSError, Zk0Error) as err:
+        parser.error(f"--registry: {str(err).rstrip('.')}")
 
 
 def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
@@ -81,7 +89,7 @@ def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
 def run_config(args, registry: Path, seed: int, keys: dict) -> str:
     settings = {
         "registry": str(registry),
-        "server-eval-dataset": "sim-so101-eval-cube",
+        "server-eval-dataset": load_registry(str(registry)).server.name,
         "model": args.model,
         "num-server-rounds": args.rounds,
         "local-steps": args.local_steps,
@@ -136,7 +144,7 @@ def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> di
     return table
 
 
-SAME = ("owners", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
+SAME = ("owners", "registry", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
         "aggregations", "hostile_factor", "sim_episodes")  # fmt: skip
 
 
@@ -159,7 +167,13 @@ def earlier_seeds(args, parser: OneSentenceParser) -> dict:
 def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench privacy", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--owners", type=positive(int), default=16)
+    parser.add_argument("--owners", type=positive(int), default=16, help="generated sim-cube owners")
+    parser.add_argument(
+        "--registry",
+        default=None,
+        help="a registry whose client sets are the owners instead (configs/sim-cube-registry.toml: the study's four "
+        "hand-written set-ups); --owners is then its number of clients",
+    )
     parser.add_argument("--demos", type=positive(int), default=10, help="demonstrations per owner")
     parser.add_argument("--rounds", type=positive(int), default=20)
     parser.add_argument("--local-steps", type=positive(int), default=75)
@@ -185,8 +199,6 @@ def build_parser() -> OneSentenceParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.owners < 4:
-        parser.error(f"--owners got {args.owners}; expected 4 or more (one hostile owner and three to outvote it)")
     if args.demos <= RunConfig.eval_episodes:
         parser.error(
             f"--demos got {args.demos}; expected more than the {RunConfig.eval_episodes} each owner holds out (eval-episodes)"
@@ -194,7 +206,13 @@ def main(argv: list[str] | None = None) -> int:
     if len(set(args.seeds)) != len(args.seeds):
         parser.error(f"--seeds got {args.seeds}; expected different seeds")
     out = Path(args.output_dir).resolve()
-    registry = owners_registry(out, args.owners)
+    if args.registry:
+        registry = Path(args.registry).resolve()
+        args.owners = len(owner_registry(parser, registry).clients)
+    else:
+        registry = owners_registry(out, args.owners)
+    if args.owners < 4:
+        parser.error(f"--owners got {args.owners}; expected 4 or more (one hostile owner and three to outvote it)")
     with native_output_to(out / "assets.log"):
         generate(load_registry(str(registry)), args.demos)
     hostile_app = scaled_client_app(out / "hostile-app", args.owners - 1, args.hostile_factor)
@@ -243,8 +261,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def report(figures: dict, args) -> None:
+    owners = f"{args.owners} sim-cube owners" + (f" ({args.registry})" if args.registry else "")
     print(
-        f"\n{args.owners} sim-cube owners x {args.demos} demonstrations, {args.rounds} rounds x {args.local_steps} "
+        f"\n{owners} x {args.demos} demonstrations, {args.rounds} rounds x {args.local_steps} "
         f"steps, {args.model}; success on {args.sim_episodes} seeded episodes per seed in the server's span, seeds "
         f"{args.seeds}:"
     )
