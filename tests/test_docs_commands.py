@@ -4,7 +4,8 @@ Commands are read from the ```bash blocks (with backslash continuations joined).
 cheapest way that still exercises it: ``zk0 certs`` for real, ``zk0 superlink``/``supernode``
 with ``--dry-run`` in a folder holding those certificates (also when the docs run them inside
 the Docker image), ``./train.sh`` with ``--print``, ``flwr run``'s run config through
-``zk0 check`` and benchmarks' options through their own parsers (both in this process),
+``zk0 check`` and benchmarks' options through their own parsers (both in this process), ``zk0 export``
+for real from a run folder made where the example names it,
 ``lerobot-rollout`` through its own entry point up to where it would load the weights and
 connect the robot. A command this test does not know fails
 it, so a new documented command cannot go unexercised.
@@ -112,13 +113,32 @@ def checkpoint_config(path: Path) -> None:
     ).save_pretrained(path)
 
 
-def in_this_process(call, argv: list[str]) -> subprocess.CompletedProcess:
-    """``call(argv)`` from the project root, its output and exit code as a subprocess's would be:
-    these commands need no process of their own, and a fresh one costs each the imports of torch
-    and lerobot (17 s a command beside the rest of the suite)."""
+def run_folder(path: Path) -> None:
+    """The run folder the example names, as a federation leaves it: a checkpoint keeping client 0's
+    statistics, and client 0's personal model."""
+    from zk0.artifacts import PERSONAL, client_dir, save_checkpoint
+    from zk0.config import RunConfig
+    from zk0.data import open_metadata
+    from zk0.policy import build_policy
+    from zk0.registry import load_registry
+
+    if (path / "server").is_dir():
+        return
+    registry = load_registry()
+    entry = registry.clients[0]
+    bundle = build_policy(RunConfig(device="cpu"), open_metadata(entry), entry, registry.model_cameras())
+    (path / "server").mkdir(parents=True)
+    save_checkpoint(bundle, path, 3, {f"client_0_{entry.name}": bundle.stats})
+    save_checkpoint(bundle, client_dir(path, 0), 3, {}, PERSONAL)
+
+
+def in_this_process(call, argv: list[str], cwd: Path = PROJECT_ROOT) -> subprocess.CompletedProcess:
+    """``call(argv)`` from ``cwd``, its output and exit code as a subprocess's would be: these
+    commands need no process of their own, and a fresh one costs each the imports of torch and
+    lerobot (17 s a command beside the rest of the suite)."""
     out, err = io.StringIO(), io.StringIO()
     try:
-        with contextlib.chdir(PROJECT_ROOT), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        with contextlib.chdir(cwd), contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             code = call(argv)
     except SystemExit as exited:  # argparse's refusal
         code = exited.code
@@ -148,6 +168,9 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
         return zk0(*tokens[1:], "--dry-run", cwd=workspace)
     if tokens[:2] == ["zk0", "check"]:
         return in_this_process(zk0_main, tokens[1:])
+    if tokens[:2] == ["zk0", "export"]:  # for real, from a run folder made where the example names it
+        run_folder(workspace / tokens[2])
+        return in_this_process(zk0_main, tokens[1:], cwd=workspace)
     if tokens[0] == "zk0":
         return zk0(*tokens[1:], cwd=workspace)
     if tokens[0] == "./train.sh":

@@ -18,7 +18,8 @@ from zk0.wire import EVALUATE_ROUND, decode, encode
 
 pytestmark = pytest.mark.usefixtures("flower_task", "isolated_logging")
 
-RUN = {"batch-size": 4, "local-steps": 3, "lr": 8e-3, "personal-lr": 8e-3, "num-server-rounds": 2, "eval-batches": 2}
+RUN = {"batch-size": 4, "local-steps": 3, "lr": 8e-3, "personal-lr": 8e-3, "num-server-rounds": 2, "eval-batches": 2,
+       "personal-frequency": 1}  # fmt: skip
 
 
 def messages(registry, personal_steps: int):
@@ -30,12 +31,15 @@ def messages(registry, personal_steps: int):
     config = {"proximal-mu": 0.0, "run-name": "r", "app-fingerprint": app_fingerprint(),
               "backbone-fingerprint": backbone_fingerprint(start.bundle)}  # fmt: skip
     rounds = [RecordDict({"arrays": arrays, "config": ConfigRecord({**config, "server-round": 1})})]
-    rounds.append(RecordDict({"arrays": arrays, "config": ConfigRecord({**config, "server-round": 2, EVALUATE_ROUND: 1})}))
+    rounds.append(
+        RecordDict({"arrays": arrays, "config": ConfigRecord({**config, "server-round": 2, EVALUATE_ROUND: 1})})
+    )
     return run_config, rounds
 
 
-def federate(registry, tmp_path, personal_steps: int, run_id: int) -> list[RecordDict]:
+def federate(registry, tmp_path, personal_steps: int, run_id: int, **keys) -> list[RecordDict]:
     run_config, rounds = messages(registry, personal_steps)
+    run_config |= keys
     context = Context(run_id=run_id, node_id=3, node_config={"partition-id": 0, "output-dir": str(tmp_path)},
                       state=RecordDict(), run_config=run_config)  # fmt: skip
     return [client.handle("train", content, context) for content in rounds]
@@ -53,7 +57,9 @@ def test_the_personal_model_beats_the_global_one_on_its_owners_episodes_and_stay
         assert all(np.array_equal(ours[k].numpy(), theirs[k].numpy()) for k in theirs)
     evaluation = dict(with_personal[1]["evaluation"])
     assert dict(without[1]["evaluation"]).keys() == {k for k in evaluation if not k.startswith("personal-")}
-    assert evaluation["personal-action-mse"] < evaluation["action-mse"], "60 steps on its own data help its own episodes"
+    assert evaluation["personal-action-mse"] < evaluation["action-mse"], (
+        "60 steps on its own data help its own episodes"
+    )
     assert {"personal-policy-loss", "personal-train-loss", "personal-s"} <= set(evaluation)
 
     # kept on the owner's machine, under its output folder, as a policy lerobot loads
@@ -65,6 +71,21 @@ def test_the_personal_model_beats_the_global_one_on_its_owners_episodes_and_stay
     params = dict(loaded.named_parameters())
     assert any(not np.allclose(params[name].detach().numpy(), value.numpy()) for name, value in start.items())
     assert not (tmp_path / "plain" / "r" / "clients" / "client_0" / "models").exists()
+
+
+def test_by_default_a_client_fine_tunes_only_for_the_models_a_run_keeps(registry, tmp_path):
+    """Round 1 of 2 is no checkpoint round (checkpoint-interval 5): its evaluation has no personal
+    model and the owner's machine keeps none; personal-frequency says otherwise."""
+    replies = federate(registry, tmp_path, personal_steps=2, run_id=73, **{"personal-frequency": 0})
+    client.release_sessions()
+    assert not any(key.startswith("personal-") for key in replies[1]["evaluation"])
+    assert not (tmp_path / "r" / "clients" / "client_0" / "models").exists()
+    rounds = lambda **keys: [
+        r for r in range(1, 11) if from_run_config({"num-server-rounds": 10, **keys}).personalises_in(r)
+    ]  # noqa: E731
+    assert rounds() == [5, 10]
+    assert rounds(**{"checkpoint-interval": 3}) == [3, 6, 9, 10]
+    assert rounds(**{"personal-frequency": 4}) == [4, 8, 10]
 
 
 def test_a_simulated_owner_rolls_both_models_out_in_its_own_conditions(tmp_path):

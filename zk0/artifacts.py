@@ -188,6 +188,7 @@ ROUND_FILE = "zk0_round.json"  # in every checkpoint: the round it holds and the
 CHECKPOINT = re.compile(r"checkpoint_round_(\d+)")
 VIDEO = re.compile(r"round_(\d+)\.mp4")
 SERVER_STATE_FILE = "server_optimiser.safetensors"  # in every checkpoint: the server optimiser's state
+PERSONAL = "personal"  # a client's personal model: its folder under the client's models/
 
 
 def save_checkpoint(

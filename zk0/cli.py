@@ -1,4 +1,5 @@
-"""The ``zk0`` command: offline assets and the checks the set-up scripts need."""
+"""The ``zk0`` command: offline assets, the checks the set-up scripts need, the deployment's
+processes, and an owner's policy exported from a run."""
 
 from __future__ import annotations
 
@@ -178,6 +179,19 @@ def run_command(command: list[str], dry_run: bool) -> None:
         deploy.run(command)
 
 
+def _export(args: argparse.Namespace) -> int:
+    """An owner's policy, normalised for their robot, in a folder lerobot loads."""
+    from zk0.export import export_policy  # lerobot's processors: only for this command
+
+    if args.personal and args.round is not None:
+        raise Zk0Error("--round names a global checkpoint; a personal model is the one its client kept, so drop one.")
+    out = export_policy(Path(args.run), args.client, Path(args.out), args.personal, args.round)
+    which = "personal model" if args.personal else "global model with its statistics"
+    print(f"Client {args.client}'s {which}: {out}")
+    print(f"Run it with: lerobot-rollout --strategy.type=base --policy.path={out} ...")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneSentenceParser(prog="zk0", description="zk0: federated SmolVLA for SO-100/SO-101 arms.")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=OneSentenceParser)
@@ -261,6 +275,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="print the flower-supernode command instead of running it (the dataset is not opened)",
     )
     supernode.set_defaults(func=_supernode)
+
+    export = commands.add_parser(
+        "export", help="write an owner's policy from a run as a lerobot folder, normalised with that owner's statistics"
+    )
+    export.add_argument("run", help="the run folder (outputs/<run>, or <--output-dir>/<run> on a SuperNode)")
+    export.add_argument("--client", type=int, required=True, help="the owner's client index (client_<i> in the run)")
+    export.add_argument("--out", required=True, help="a new folder for the policy (lerobot-rollout --policy.path)")
+    export.add_argument(
+        "--personal", action="store_true", help="the owner's personal model instead of the global one (personal-steps)"
+    )
+    export.add_argument("--round", type=int, help="the global model of this round's checkpoint (default: the last)")
+    export.set_defaults(func=_export)
     return parser
 
 

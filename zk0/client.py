@@ -300,7 +300,7 @@ def _evaluate(session: ClientSession, content: RecordDict, context: Context) -> 
         session.bundle, session.split, session.eval_batches, run.eval_batches, run.seed, run.max_skip_fraction
     )
     evaluated = int(content["config"].get(EVALUATE_ROUND, content["config"]["server-round"]))
-    if run.personal_steps:
+    if run.personal_steps and run.personalises_in(evaluated):
         if session.personal is None:
             session.personal = build_personaliser(run, session.bundle, session.split, session.eval_batches)
         metrics |= session.personal(evaluated, state_folder(session, context, content["config"]).parent, metrics)

@@ -22,15 +22,13 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
-from zk0.artifacts import save_checkpoint
+from zk0.artifacts import PERSONAL, save_checkpoint
 from zk0.closed_loop import ClosedLoop
 from zk0.config import RunConfig
 from zk0.data import DatasetSplit, train_loader
 from zk0.policy import PolicyBundle, rng_devices, set_trainable, snapshot
 from zk0.sim.tasks import SIM_SPECS
 from zk0.training import LocalTrainer, evaluate
-
-FOLDER = "personal"  # under the client's models/
 
 
 @dataclass
@@ -65,7 +63,7 @@ class Personaliser:
             if self.closed_loop:
                 metrics |= own_conditions(self.closed_loop(bundle), "personal-")
             kept = {**global_metrics, **metrics}  # the global model's figures beside the personal one's
-            save_checkpoint(bundle, client_dir, evaluated_round, {}, FOLDER, kept, evaluated_by="evaluate")
+            save_checkpoint(bundle, client_dir, evaluated_round, {}, PERSONAL, kept, evaluated_by="evaluate")
         set_trainable(bundle, global_weights)
         metrics["personal-s"] = time.perf_counter() - started
         return metrics

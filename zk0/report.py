@@ -239,6 +239,7 @@ def client_rows(history: dict) -> list[dict]:
         ]
         ok = [t for t in trained if "error" not in t]
         scored = [e for e in evaluated if "error" not in e]
+        personal = [e for e in scored if "personal-action-mse" in e]  # the rounds it fine-tuned in (personal-frequency)
         refusals = [
             {"round": r["round"], "phase": phase, "reason": r["clients"][index][phase]["error"]}
             for r in history["rounds"]
@@ -253,9 +254,9 @@ def client_rows(history: dict) -> list[dict]:
                 "samples": sum(int(t.get("num-examples", 0)) for t in ok) if ok else None,
                 "loss": ok[-1].get("train-loss") if ok else None,
                 "mse": scored[-1].get("action-mse") if scored else None,
-                "personal_mse": scored[-1].get("personal-action-mse") if scored else None,
-                "own_success": _own_success(scored[-1], "own-") if scored else None,
-                "personal_success": _own_success(scored[-1], "personal-own-") if scored else None,
+                "personal_mse": personal[-1]["personal-action-mse"] if personal else None,
+                "own_success": _own_success(personal[-1], "own-") if personal else None,
+                "personal_success": _own_success(personal[-1], "personal-own-") if personal else None,
                 "refusals": refusals,
             }
         )
