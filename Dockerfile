@@ -37,8 +37,8 @@ RUN python3.12 -m venv /opt/zk0/venv \
     && ln -s /opt/zk0/venv .venv \
     && .venv/bin/pip install -e ".[test]"
 COPY --chown=zk0:zk0 . .
-RUN .venv/bin/pip install --no-deps -e . \
-    && sha256sum pyproject.toml | cut -d' ' -f1 > .venv/.zk0-installed
+RUN .venv/bin/pip install --no-deps -e . -e plugins/lerobot_env_zk0 \
+    && cat pyproject.toml plugins/lerobot_env_zk0/pyproject.toml | sha256sum | cut -d' ' -f1 > .venv/.zk0-installed
 
 ENV PATH=/opt/zk0/venv/bin:$PATH \
     FLWR_HOME=/workspace/.flwr \

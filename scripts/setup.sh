@@ -85,6 +85,14 @@ zk0_ensure_chromium() {
     zk0_log "Chromium not found and not installable here; the report's browser test is skipped."
 }
 
+# zk0's simulator as a lerobot env plugin (lerobot imports every lerobot_env_* distribution).
+ZK0_ENV_PLUGIN=plugins/lerobot_env_zk0
+
+# What the installed .venv was made from: both projects' pyproject.toml (the Dockerfile writes the same).
+zk0_install_stamp() {
+    cat "$1/pyproject.toml" "$1/$ZK0_ENV_PLUGIN/pyproject.toml" | sha256sum | cut -d' ' -f1
+}
+
 zk0_ensure_venv() {
     local python stamp want home
     if [ ! -x "$ZK0_VENV/bin/python" ]; then
@@ -100,10 +108,11 @@ zk0_ensure_venv() {
             ln -s "$home" "$ZK0_VENV" || { zk0_log "Could not create a virtual environment in $home with $python."; return 1; }
     fi
     stamp="$ZK0_VENV/.zk0-installed"
-    want="$(sha256sum "$ZK0_ROOT/pyproject.toml" | cut -d' ' -f1)"
+    want="$(zk0_install_stamp "$ZK0_ROOT")"
     if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
         zk0_log "Installing zk0 and its dependencies into .venv (first time: a few minutes)..."
-        if ! "$ZK0_VENV/bin/python" -m pip install -q --disable-pip-version-check -e "$ZK0_ROOT[test]"; then
+        if ! "$ZK0_VENV/bin/python" -m pip install -q --disable-pip-version-check -e "$ZK0_ROOT[test]" \
+            -e "$ZK0_ROOT/$ZK0_ENV_PLUGIN"; then
             zk0_log "Installing the project into .venv failed; see pip's message above."
             return 1
         fi
@@ -119,6 +128,9 @@ zk0_export_env() {
     # The SuperLink would otherwise `uv sync` the app's dependencies into a fresh env every run.
     export FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION=1
     export SVT_LOG="${SVT_LOG:-1}"
+    # MuJoCo picks its GL back end when first imported; lerobot's commands import the SO-101 model's
+    # plugin (which loads MuJoCo) before zk0's, so say EGL here for lerobot-eval on a headless machine.
+    export MUJOCO_GL="${MUJOCO_GL:-egl}"
 }
 
 zk0_setup() {

@@ -191,9 +191,12 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
         checkpoint_config(workspace / policy)  # the run folder's checkpoint the example names
         command = [sys.executable, "-c", ROLLOUT_UNTIL_ROBOT, *tokens[1:]]
         return subprocess.run(command, cwd=workspace, capture_output=True, text=True, timeout=300, check=False)
-    if tokens[:3] == ["python", "-m", "zk0.sim.lerobot_eval"]:  # run for real in tests/test_sim.py
-        command = [sys.executable, "-m", "zk0.sim.lerobot_eval", "--help"]
-        return subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
+    if tokens[:2] == ["MUJOCO_GL=egl", "lerobot-eval"]:  # run for real in tests/test_sim.py
+        command = [str(BIN / "lerobot-eval"), *tokens[2:], "--help"]
+        done = subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
+        if "--env.conditions" not in done.stdout:  # only zk0's env has it: lerobot found the plugin
+            return subprocess.CompletedProcess(command, 1, done.stdout, "lerobot-eval does not know zk0_so101")
+        return done
     if tokens[:3] == ["python", "-m", "zk0.bench"]:
         return in_this_process(parse_benchmark, tokens[3:])
     raise AssertionError(f"No way to exercise {shlex.join(tokens)!r}; teach tests/test_docs_commands.py one.")

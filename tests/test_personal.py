@@ -80,9 +80,11 @@ def test_by_default_a_client_fine_tunes_only_for_the_models_a_run_keeps(registry
     client.release_sessions()
     assert not any(key.startswith("personal-") for key in replies[1]["evaluation"])
     assert not (tmp_path / "r" / "clients" / "client_0" / "models").exists()
-    rounds = lambda **keys: [
-        r for r in range(1, 11) if from_run_config({"num-server-rounds": 10, **keys}).personalises_in(r)
-    ]  # noqa: E731
+
+    def rounds(**keys) -> list[int]:
+        run = from_run_config({"num-server-rounds": 10, **keys})
+        return [r for r in range(1, 11) if run.personalises_in(r)]
+
     assert rounds() == [5, 10]
     assert rounds(**{"checkpoint-interval": 3}) == [3, 6, 9, 10]
     assert rounds(**{"personal-frequency": 4}) == [4, 8, 10]

@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -277,11 +278,11 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     assert re.search(r"Round 1/1: .*success \d+% \[\d+, \d+\] of 2 in the simulator", log), log[-3000:]
 
     done = subprocess.run(
-        [sys.executable, "-m", "zk0.sim.lerobot_eval", f"--policy.path={best}", "--env.type=zk0_so101",
+        [str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={best}", "--env.type=zk0_so101",
          "--env.episode_length=20", "--eval.n_episodes=1", "--eval.batch_size=1", "--policy.device=cpu",
          f"--rename_map={json.dumps(CAMERA_MAP)}",
          f"--output_dir={tmp_path / 'lerobot-eval'}"],
-        capture_output=True, text=True, timeout=600, check=False,
+        capture_output=True, text=True, timeout=600, check=False, env={**os.environ, "MUJOCO_GL": "egl"},
     )
     assert done.returncode == 0, done.stderr[-3000:]
     info = json.loads((tmp_path / "lerobot-eval" / "eval_info.json").read_text())
