@@ -330,3 +330,27 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
                                          "--seeds-from", str(earlier)]), parser)  # fmt: skip
     said = capsys.readouterr().err
     assert f"--seeds-from {earlier} was run with --owners 8, this run with 16; expected the same settings" in said
+
+
+def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owners():
+    """The benchmark's comparison of the two kinds: the noiseless twin of a private round is
+    deterministic (so the difference is the noise alone), the noise multiplier is Opacus's for the
+    run, and the owners owner-level needs follow from its own figures."""
+    import argparse
+    import math
+
+    from opacus.accountants.utils import get_noise_multiplier
+
+    from zk0.bench.privacy import noise_crossover
+    from zk0.registry import PROJECT_ROOT
+
+    args = argparse.Namespace(model="tiny", rounds=4, local_steps=3, lr=1e-3, delta=1e-5)
+    found = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
+    again = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
+    assert found["record-noise-share"] == again["record-noise-share"] > 0.0
+    rate = found["sample-rate"]  # the run's batch (8) over the owner's training demonstrations
+    assert 0.0 < rate <= 1.0
+    expected = get_noise_multiplier(target_epsilon=8.0, target_delta=1e-5, sample_rate=rate, steps=12, accountant="rdp")
+    assert found["record-noise-multiplier"] == pytest.approx(expected)
+    share = found["owner-noise-multiplier"] * math.sqrt(found["weights"])
+    assert found["owners-to-match"] == math.ceil((share / found["record-noise-share"]) ** 2)

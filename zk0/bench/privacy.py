@@ -32,20 +32,24 @@ so seeds can be trained one invocation at a time.
 from __future__ import annotations
 
 import json
+import math
 import statistics
 import sys
 import time
 from pathlib import Path
 
+import torch
+
 from zk0.artifacts import checkpoints
 from zk0.bench.client import write_json
 from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.robust import scaled_client_app
-from zk0.config import AGGREGATIONS, OFFLINE_MODELS, RunConfig
+from zk0.client import build_client
+from zk0.config import AGGREGATIONS, OFFLINE_MODELS, RunConfig, from_run_config
 from zk0.data import open_evaluation, open_metadata
 from zk0.errors import OneSentenceParser, Zk0Error, positive
 from zk0.logs import native_output_to
-from zk0.policy import build_policy
+from zk0.policy import build_policy, snapshot
 from zk0.privacy import calibrated_noise
 from zk0.rates import mcnemar, rate_text, wilson
 from zk0.registry import PROJECT_ROOT, load_registry
@@ -53,6 +57,7 @@ from zk0.resume import checkpoint_trainable
 from zk0.simulation import run_federation
 
 NON_PRIVATE = "non-private"
+NOISELESS = {"dp-epsilon-budget": 1e30, "dp-noise-multiplier": 1e-12}  # clipping and draws alone
 
 
 def owners_registry(folder: Path, owners: int) -> Path:
@@ -121,6 +126,43 @@ def rollouts(args, registry_path: Path, finals: dict[str, Path]) -> dict[str, di
     rolled = closed_loop_all({SERVER: list(models)}, models, {SERVER: (bundle, split, None)}, args.sim_episodes,
                              run.seed, lambda line: print(f"  {line}", flush=True))  # fmt: skip
     return {name: row[SERVER] for name, row in rolled.items()}
+
+
+def noise_crossover(args, registry_path: Path, epsilon: float) -> dict:
+    """How many owners owner-level DP needs before the noise on the released average is no larger
+    than record-level DP's, both spending ``epsilon`` over the run.
+
+    Record-level: owner 0's first round trained twice from the same start with the same draws and
+    clipping, once with the calibrated noise and once with none (noise 1e-12, no budget); the noise's
+    share of the update is the difference's norm over the noiseless update's. Averaged over N
+    owners, independent noises shrink as 1/sqrt(N). Owner-level: noise of std z * clip on each of
+    the d weights of the sum, divided by N. Taken at its most favourable (every update at the clip
+    and pointing one way), its share is z * sqrt(d) / N, which falls to record-level's at
+    N = (z * sqrt(d) / share)^2."""
+    registry = load_registry(str(registry_path))
+    keys = {"registry": str(registry_path), "server-eval-dataset": registry.server.name, "model": args.model,
+            "num-server-rounds": args.rounds, "local-steps": args.local_steps, "lr": args.lr, "dp": "record",
+            "dp-delta": args.delta}  # fmt: skip
+    updates, noise, rate = {}, 0.0, 0.0
+    for label, extra in (("noisy", {"dp-epsilon-budget": epsilon}), ("clean", NOISELESS)):
+        session = build_client(from_run_config({**keys, **extra}), registry.clients[0], registry.model_cameras())
+        start = snapshot(session.bundle)
+        session.trainer.fit(args.local_steps, 0.0, global_step=0)
+        end = snapshot(session.bundle)
+        updates[label] = torch.cat([(end[name] - start[name]).flatten() for name in start])
+        noise, rate = noise or session.trainer.noise_multiplier, session.trainer.sample_rate
+    record_share = float((updates["noisy"] - updates["clean"]).norm() / updates["clean"].norm())
+    owner_noise = calibrated_noise(epsilon, args.delta, args.rounds)
+    owner_share_one = owner_noise * math.sqrt(updates["clean"].numel())
+    return {
+        "record-noise-multiplier": noise,
+        "sample-rate": rate,
+        "record-noise-share": record_share,
+        "owner-noise-multiplier": owner_noise,
+        "weights": updates["clean"].numel(),
+        "owner-noise-share-one-owner": owner_share_one,
+        "owners-to-match": math.ceil((owner_share_one / record_share) ** 2),
+    }
 
 
 def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> dict[str, dict]:
@@ -243,6 +285,7 @@ def main(argv: list[str] | None = None) -> int:
             if train(label, seed, spec) is None:
                 return 1
     figures["training-wall-s"] = time.perf_counter() - started
+    figures["noise-crossover"] = {f"e={e:g}": noise_crossover(args, registry, e) for e in args.epsilons}
     figures["success"] = rollouts(args, registry, finals)
     seeds = list(args.seeds)
     if args.seeds_from:
@@ -273,6 +316,13 @@ def report(figures: dict, args) -> None:
         seeds = ", ".join(f"{100 * r:.0f}%" for r in row["per-seed"])
         text = rate_text(row["success-rate"], row["episodes"])
         print(f"{label:<26} {text:<26} {seeds:<18} {ratio:<14} {row['mcnemar-p']:.2g}")
+    for label, c in figures["noise-crossover"].items():
+        print(
+            f"{label}: record-level noise is {100 * c['record-noise-share']:.0f}% of one owner's update (noise "
+            f"multiplier {c['record-noise-multiplier']:.3g}); owner-level (noise multiplier "
+            f"{c['owner-noise-multiplier']:.3g} over {c['weights']:,} weights) matches it from "
+            f"{c['owners-to-match']:,} owners"
+        )
     print(f"wall time: {figures['wall-s'] / 60:.0f} min ({figures['training-wall-s'] / 60:.0f} training)")
 
 
