@@ -163,7 +163,7 @@ trap stop_superlink EXIT
 # private SuperLink; what the run wrote stays, and the command that continues it is printed.
 interrupted() {
     trap - INT TERM
-    # The ServerApp's process first and at once (it writes nothing once signalled: zk0.stopping),
+    # The ServerApp's process first and at once (it writes nothing once signalled: zk0.federation.stopping),
     # then Flower's record of the run, then everything else.
     local tree run_id run_dir last written again=() shown=""
     tree="$(superlink_tree)"

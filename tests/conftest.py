@@ -42,14 +42,14 @@ def ordinary_scheduling():
 @pytest.fixture(scope="session", autouse=True)
 def offline_assets():
     """The offline backbone and datasets, generated once (opening a registry entry never does)."""
-    from zk0.assets import ensure_all
+    from zk0.data.assets import ensure_all
 
     ensure_all()
 
 
 @pytest.fixture(scope="session")
 def registry():
-    from zk0.registry import load_registry
+    from zk0.data.registry import load_registry
 
     return load_registry()
 
@@ -64,7 +64,7 @@ def run_config():
 @pytest.fixture
 def client_parts(registry, run_config):
     """Policy bundle, dataset split and trainer for client 0, built the way the ClientApp builds them."""
-    from zk0.client import build_client
+    from zk0.federation.client import build_client
 
     client = build_client(run_config, registry.clients[0], registry.model_cameras())
     return client.bundle, client.split, client.trainer
@@ -84,7 +84,7 @@ def flower_task():
 
 @pytest.fixture
 def isolated_logging():
-    """For a test whose code calls ``zk0.logs.setup_logging`` (directly or by handling a message):
+    """For a test whose code calls ``zk0.outputs.logs.setup_logging`` (directly or by handling a message):
     the standard-library logging it rewires is put back, and loguru is left as a fresh process
     has it, so later tests see the logging they would alone."""
     import logging
@@ -92,7 +92,7 @@ def isolated_logging():
 
     from loguru import logger
 
-    from zk0 import logs
+    from zk0.outputs import logs
 
     names = ["", "flwr", "lerobot", "ray", "accelerate", "httpx", "httpcore", "urllib3", "filelock"]
     saved = {name: (logging.getLogger(name), logging.getLogger(name).handlers[:]) for name in names}

@@ -1,4 +1,4 @@
-"""LoRA on the wire (zk0.adapters): lerobot's PEFT wrapping, identical on every party; only the
+"""LoRA on the wire (zk0.learning.adapters): lerobot's PEFT wrapping, identical on every party; only the
 adapters train and travel; checkpoints are plain lerobot directories with the adapters merged."""
 
 from __future__ import annotations
@@ -13,15 +13,15 @@ from lerobot.policies import make_policy
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from safetensors.torch import load_file
 
-from zk0.artifacts import save_checkpoint
-from zk0.client import build_client
+from zk0.common.errors import Zk0Error
 from zk0.config import LORA_FULL_MODULES, ConfigError, RunConfig, from_run_config
-from zk0.data import open_metadata, prepare_batch
-from zk0.errors import Zk0Error
-from zk0.policy import backbone_fingerprint, build_policy, set_trainable, trainable_tensors
-from zk0.resume import find_resume_point
-from zk0.simulation import cpu_federation, flwr_run, local_federation
-from zk0.wire import encode
+from zk0.data.loaders import open_metadata, prepare_batch
+from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+from zk0.federation.client import build_client
+from zk0.federation.wire import encode
+from zk0.learning.policy import backbone_fingerprint, build_policy, set_trainable, trainable_tensors
+from zk0.outputs.artifacts import save_checkpoint
+from zk0.outputs.resume import find_resume_point
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,10 @@ import pytest
 from flwr.app import ArrayRecord, ConfigRecord, Error, Message, MessageType, MetricRecord, RecordDict
 from loguru import logger
 
-from zk0.aggregation import RunCannotTrain, ValidatingStrategy, array_signature, update_problem
-from zk0.errors import REFUSED
-from zk0.server_optimisers import make_strategy
-from zk0.wire import MANIFEST, PACKED, encode
+from zk0.common.errors import REFUSED
+from zk0.federation.aggregation import RunCannotTrain, ValidatingStrategy, array_signature, update_problem
+from zk0.federation.server_optimisers import make_strategy
+from zk0.federation.wire import MANIFEST, PACKED, encode
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 

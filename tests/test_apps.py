@@ -8,7 +8,7 @@ import tomllib
 from flwr.clientapp import ClientApp
 from flwr.serverapp import ServerApp
 
-from zk0.registry import PROJECT_ROOT
+from zk0.data.registry import PROJECT_ROOT
 
 
 def test_components_named_in_pyproject_import():

@@ -10,8 +10,8 @@ import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 from transformers import AutoProcessor
 
-from zk0.assets import AssetError, ensure_backbone, ensure_dataset, synthetic_dataset_root
-from zk0.assets.datasets import COLOURS, JOINT_NAMES, NON_IID, SPECS, write_synthetic_dataset
+from zk0.data.assets import AssetError, ensure_backbone, ensure_dataset, synthetic_dataset_root
+from zk0.data.assets.datasets import COLOURS, JOINT_NAMES, NON_IID, SPECS, write_synthetic_dataset
 
 
 @pytest.mark.parametrize(
@@ -64,8 +64,8 @@ def test_generator_is_deterministic_in_its_seed(tmp_path):
 
 def test_tiny_backbone_builds_a_small_smolvla(registry):
     from zk0.config import RunConfig
-    from zk0.data import open_metadata
-    from zk0.policy import build_policy
+    from zk0.data.loaders import open_metadata
+    from zk0.learning.policy import build_policy
 
     processor = AutoProcessor.from_pretrained(ensure_backbone())
     assert processor.tokenizer.fake_image_token_id != processor.tokenizer.unk_token_id
@@ -81,8 +81,8 @@ def test_each_offline_model_sees_a_camera_as_so_many_visual_tokens(registry, mod
     """The 64 px tiny model sees a camera as 4 tokens (a 3 cm cube is about 3 of its pixels); the
     simulator's tiny-128 model as 64, from 128 px frames in 8 px patches."""
     from zk0.config import RunConfig
-    from zk0.data import open_metadata
-    from zk0.policy import build_policy
+    from zk0.data.loaders import open_metadata
+    from zk0.learning.policy import build_policy
 
     entry = registry.clients[0]
     bundle = build_policy(RunConfig(model=model), open_metadata(entry), entry, registry.model_cameras())

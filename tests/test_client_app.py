@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from zk0.client import client_index
 from zk0.config import RunConfig
-from zk0.registry import RegistryError
-from zk0.tracking import Tracker
+from zk0.data.registry import RegistryError
+from zk0.federation.client import client_index
+from zk0.outputs.tracking import Tracker
 
 
 def test_node_config_names_the_dataset_else_partition_id(registry):
@@ -40,8 +40,8 @@ def test_a_client_refuses_a_server_running_other_code_and_logs_in_its_own_folder
     from flwr.app import ArrayRecord, ConfigRecord, Context, RecordDict
 
     from zk0 import app_fingerprint
-    from zk0.client import handle
-    from zk0.policy import PolicyError
+    from zk0.federation.client import handle
+    from zk0.learning.policy import PolicyError
 
     node_config = {"dataset": "synth-so100-stacking", "output-dir": str(tmp_path / "owner")}
     context = Context(run_id=1, node_id=7, node_config=node_config, state=RecordDict(), run_config={"batch-size": 2})
@@ -64,7 +64,7 @@ def test_a_process_keeps_the_sessions_of_its_four_latest_nodes(tmp_path, isolate
     owner met again is moved to the back of the line, not rebuilt."""
     from flwr.app import ConfigRecord, Context, RecordDict
 
-    from zk0 import client
+    from zk0.federation import client
 
     config = ConfigRecord({"run-name": "2026-01-01_00-00-00", "server-round": 1})
     run_config = {"batch-size": 2, "output-dir": str(tmp_path)}
@@ -94,9 +94,10 @@ def test_the_time_budget_counts_the_evaluation_the_train_message_carries(tmp_pat
 
     from flwr.app import ConfigRecord, Context, RecordDict
 
-    from zk0 import app_fingerprint, client
-    from zk0.policy import trainable_tensors
-    from zk0.wire import EVALUATE_ROUND, EVALUATION, encode
+    from zk0 import app_fingerprint
+    from zk0.federation import client
+    from zk0.federation.wire import EVALUATE_ROUND, EVALUATION, encode
+    from zk0.learning.policy import trainable_tensors
 
     budget = 3600.0
     run_config = {"batch-size": 2, "output-dir": str(tmp_path), "local-steps": 2, "local-time-s": budget}
@@ -122,8 +123,8 @@ def test_the_time_budget_counts_the_evaluation_the_train_message_carries(tmp_pat
 
 
 def test_a_run_name_that_is_a_path_is_refused():
-    from zk0.client import client_log
     from zk0.config import ConfigError
+    from zk0.federation.client import client_log
 
     assert client_log({"output-dir": "/data/zk0"}, RunConfig(), "run-1", 2).as_posix() == (
         "/data/zk0/run-1/clients/client_2/client.log"

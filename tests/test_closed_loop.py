@@ -9,13 +9,13 @@ import torch
 from lerobot.envs.factory import make_env
 from lerobot.scripts.lerobot_eval import rollout
 
-from zk0.assets import ensure_dataset
-from zk0.closed_loop import ClosedLoop, summary
 from zk0.config import from_run_config
-from zk0.data import open_metadata
-from zk0.policy import build_policy
-from zk0.rates import wilson
-from zk0.registry import load_registry
+from zk0.data.assets import ensure_dataset
+from zk0.data.loaders import open_metadata
+from zk0.data.registry import load_registry
+from zk0.learning.closed_loop import ClosedLoop, summary
+from zk0.learning.policy import build_policy
+from zk0.learning.rates import wilson
 
 REGISTRY = "configs/sim-registry.toml"
 CONDITIONS = "sim-so101-eval"

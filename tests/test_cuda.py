@@ -16,8 +16,8 @@ pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUD
 
 @pytest.fixture(scope="module")
 def cuda_client(registry):
-    from zk0.client import build_client
     from zk0.config import RunConfig
+    from zk0.federation.client import build_client
 
     run = RunConfig(device="cuda:0", batch_size=4, local_steps=3, num_server_rounds=1)
     return build_client(run, registry.clients[0], registry.model_cameras())
@@ -36,7 +36,7 @@ def test_a_client_trains_on_cuda_with_bf16_and_reports_its_peak_memory(cuda_clie
 
 
 def test_evaluation_on_cuda_is_seeded(cuda_client):
-    from zk0.training import evaluate
+    from zk0.learning.training import evaluate
 
     runs = [
         evaluate(cuda_client.bundle, cuda_client.split, cuda_client.eval_batches, 1, seed=3, max_skip=0.1)
@@ -49,7 +49,7 @@ def test_evaluation_on_cuda_is_seeded(cuda_client):
 def test_frames_reach_the_gpu_as_uint8_and_the_processors_run_there(cuda_client):
     """Pinned uint8 frames are copied with non_blocking and scaled on the device; the preprocessor
     (normalisation, tokenisation) leaves every tensor on the client's GPU."""
-    from zk0.data import prepare_batch
+    from zk0.data.loaders import prepare_batch
 
     split, bundle = cuda_client.split, cuda_client.bundle
     batch = next(iter(cuda_client.trainer.loader))

@@ -17,8 +17,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from zk0.loopback import LoopbackFederation, loopback_federation, tool
-from zk0.registry import PROJECT_ROOT
+from zk0.data.registry import PROJECT_ROOT
+from zk0.deployment.loopback import LoopbackFederation, loopback_federation, tool
 
 pytestmark = pytest.mark.deployment
 
@@ -50,14 +50,14 @@ def submitted_copy(root: Path) -> Path:
     shutil.copytree(
         PROJECT_ROOT, app, ignore=shutil.ignore_patterns(".git", ".venv", ".flwr", "outputs", "__pycache__", ".whl")
     )
-    client = app / "zk0" / "client.py"
+    client = app / "zk0" / "federation" / "client.py"
     source = client.read_text()
     assert '"Opened {}' in source
     client.write_text(source.replace('"Opened {}', f'"{MARKER} {{}}'))
     return app
 
 
-def workers_under(root: Path, module: str = "zk0.worker") -> list[psutil.Process]:
+def workers_under(root: Path, module: str = "zk0.deployment.worker") -> list[psutil.Process]:
     """Warm workers (or ``module``'s processes) started by this federation's SuperNodes (their
     working folder is under ``root``)."""
     found = []
@@ -129,7 +129,7 @@ def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federat
         assert MARKER in log, "the SuperNode ran the submitted code, not its installed copy"
         assert "Round 3 train" in log and "Round 2 evaluate" in log
         # Its ClientApps were forked from a process that had imported Flower (and forgot its own zk0).
-        assert workers_under(federation.root / robot, "zk0.forkserver"), "the SuperNode's fork server runs"
+        assert workers_under(federation.root / robot, "zk0.deployment.forkserver"), "the SuperNode's fork server runs"
         assert "fork server exited" not in federation.log(robot)
     assert not list(run_dir.glob("clients/*/client.log"))
     # The warm worker built each client once; later messages found it built and continued training,
@@ -240,9 +240,9 @@ def test_supernodes_without_cpus_divide_the_machine_between_them(tmp_path, monke
     recomputed before each message from the SuperNodes alive, and PyTorch's threads set to it."""
     import torch
 
-    from zk0 import machine
-    from zk0.client import share_this_machine
-    from zk0.deploy import thread_env
+    from zk0.common import machine
+    from zk0.deployment.commands import thread_env
+    from zk0.federation.client import share_this_machine
 
     folder, cpus = tmp_path / "supernodes", machine.affinity()
     first = thread_env(None, folder)  # the first SuperNode on this machine has it all
@@ -276,16 +276,16 @@ def test_supernode_dry_run_shows_the_thread_settings_it_starts_with(tmp_path):
     for extra, expected in ((["--cpus", "1"], "ZK0_CPUS=1 OMP_NUM_THREADS=1"), ([], "ZK0_SUPERNODES=")):
         done = subprocess.run([*base, *extra, "--dry-run"], capture_output=True, text=True, timeout=60, cwd=tmp_path)
         assert done.returncode == 0 and done.stdout.startswith(expected), done.stdout + done.stderr
-        assert f"{sys.executable} -m zk0.supernode --superlink 127.0.0.1:1 --insecure" in done.stdout
+        assert f"{sys.executable} -m zk0.deployment.supernode --superlink 127.0.0.1:1 --insecure" in done.stdout
 
 
 def test_zk0s_supernode_polls_instead_of_flowers_hard_coded_waits(monkeypatch):
-    """`python -m zk0.supernode` is Flower's SuperNode whose loop sleeps 0.5 s, not 3 s, between idle
+    """`python -m zk0.deployment.supernode` is Flower's SuperNode whose loop sleeps 0.5 s, not 3 s, between idle
     polls of the SuperLink, and 0.05 s, not 0.5 s, between looks for its ClientApp's reply."""
     from flwr.supernode import start_client_internal as loop
 
-    from zk0 import internals, supernode
-
+    from zk0 import internals
+    from zk0.deployment import supernode
     monkeypatch.setattr(loop, "time", loop.time)  # this process's loop gets Flower's waits back afterwards
     internals.shorten_supernode_waits(supernode.IDLE_POLL_S, supernode.REPLY_POLL_S)
     slept = []

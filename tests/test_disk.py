@@ -1,4 +1,4 @@
-"""Will the run fit? The disk checked before round 1 (zk0.disk), and what keep-checkpoints bounds."""
+"""Will the run fit? The disk checked before round 1 (zk0.outputs.disk), and what keep-checkpoints bounds."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import subprocess
 
 import pytest
 
+from zk0.common.errors import Zk0Error
 from zk0.config import RunConfig
-from zk0.disk import (
+from zk0.outputs.disk import (
     GB,
     PER_ROUND_BYTES,
     bytes_needed,
@@ -22,7 +23,6 @@ from zk0.disk import (
     is_full,
     size,
 )
-from zk0.errors import Zk0Error
 
 FULL_SIZE = 1.8e9  # a full-size SmolVLA checkpoint (docs/performance.md)
 
@@ -69,7 +69,7 @@ def test_a_long_full_size_run_stays_under_ten_gigabytes_at_the_default():
 
 
 def test_the_estimate_holds_a_checkpoint_as_written(tmp_path, client_parts):
-    from zk0.artifacts import save_checkpoint
+    from zk0.outputs.artifacts import save_checkpoint
 
     bundle = client_parts[0]
     trainable = {name: p.detach().numpy() for name, p in bundle.policy.named_parameters() if p.requires_grad}
@@ -114,7 +114,7 @@ def test_a_full_disk_leaves_no_half_file_and_reads_as_one_sentence(tmp_path):
     import torch
     from safetensors.torch import save_file
 
-    from zk0.artifacts import write_json
+    from zk0.outputs.artifacts import write_json
 
     with small_disk(tmp_path / "disk", 1) as disk:
         fill(disk, leave=4096)
@@ -146,7 +146,7 @@ def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_s
     import torch
     from safetensors.torch import load_file
 
-    from zk0.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
 
     config = "num-server-rounds=3 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1"
     with small_disk(tmp_path / "disk", 2) as disk, local_federation(tmp_path / "flwr-home") as env:

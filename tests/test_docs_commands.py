@@ -25,7 +25,7 @@ import pytest
 
 from zk0.bench.__main__ import BENCHMARKS
 from zk0.cli import main as zk0_main
-from zk0.registry import PROJECT_ROOT
+from zk0.data.registry import PROJECT_ROOT
 
 DOCS = [PROJECT_ROOT / "README.md", *sorted((PROJECT_ROOT / "docs").glob("**/*.md"))]
 BIN = Path(sys.executable).parent
@@ -116,11 +116,11 @@ def checkpoint_config(path: Path) -> None:
 def run_folder(path: Path) -> None:
     """The run folder the example names, as a federation leaves it: a checkpoint keeping client 0's
     statistics, and client 0's personal model."""
-    from zk0.artifacts import PERSONAL, client_dir, save_checkpoint
     from zk0.config import RunConfig
-    from zk0.data import open_metadata
-    from zk0.policy import build_policy
-    from zk0.registry import load_registry
+    from zk0.data.loaders import open_metadata
+    from zk0.data.registry import load_registry
+    from zk0.learning.policy import build_policy
+    from zk0.outputs.artifacts import PERSONAL, client_dir, save_checkpoint
 
     if (path / "server").is_dir():
         return

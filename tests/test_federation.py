@@ -17,10 +17,10 @@ from safetensors.torch import load_file
 
 from zk0.bench.robust import scaled_client_app
 from zk0.config import RunConfig
-from zk0.data import open_metadata
-from zk0.policy import build_policy, get_trainable
-from zk0.registry import load_registry
-from zk0.simulation import cpu_federation, flwr_run, local_federation
+from zk0.data.loaders import open_metadata
+from zk0.data.registry import load_registry
+from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+from zk0.learning.policy import build_policy, get_trainable
 
 pytestmark = pytest.mark.e2e
 
@@ -311,7 +311,7 @@ def test_flwr_stop_ends_the_run_at_once(flower_env, tmp_path):
     import time
     from datetime import datetime
 
-    from zk0.simulation import CONNECTION
+    from zk0.deployment.simulation import CONNECTION
 
     out = tmp_path / "outputs"
     flwr = str(Path(sys.executable).with_name("flwr"))

@@ -8,7 +8,7 @@ import subprocess
 import sys
 import time
 
-from zk0.forkserver import ForkServer
+from zk0.deployment.forkserver import ForkServer
 
 
 def wait_for(capfd, text: str, timeout: float = 60) -> str:

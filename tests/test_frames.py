@@ -10,12 +10,12 @@ import torch
 from lerobot.datasets import dataset_reader
 from loguru import logger
 
-from zk0.cache import default_cache_root
+from zk0.common.cache import default_cache_root
 from zk0.config import RunConfig
-from zk0.data import _make, open_metadata
-from zk0.frames import attach_frame_cache, cache_key
+from zk0.data.frames import attach_frame_cache, cache_key
+from zk0.data.loaders import _make, open_metadata
 from zk0.internals import video_query
-from zk0.policy import build_policy
+from zk0.learning.policy import build_policy
 
 DECODE_EVERY_BATCH = RunConfig(frame_cache_gb=0)
 

@@ -1,6 +1,6 @@
-"""The import contracts in pyproject's ``[tool.importlinter]`` (layers from the entry points down to
-errors and internals, the simulator apart from the federation, no circles) hold, and they catch the
-kinds of import that broke them before."""
+"""The import contracts in pyproject's ``[tool.importlinter]`` (packages layered from the entry points
+down to common and internals, the simulator apart from the federation, no circles) hold, and they
+catch the kinds of import that broke them before."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from zk0.registry import PROJECT_ROOT
+from zk0.data.registry import PROJECT_ROOT
 
 
 def lint_imports(root: Path) -> subprocess.CompletedProcess:
@@ -32,13 +32,13 @@ def test_a_circle_or_an_import_up_a_layer_breaks_them(tmp_path):
     shutil.copytree(PROJECT_ROOT / "zk0", tmp_path / "zk0", ignore=shutil.ignore_patterns("__pycache__"))
     shutil.copy(PROJECT_ROOT / "pyproject.toml", tmp_path)
     for module, line in (
-        ("sim/scene.py", "from zk0.assets import ensure_dataset"),
+        ("sim/scene.py", "from zk0.data.assets import ensure_dataset"),
         ("bench/lora.py", "from zk0.bench.learning import actions"),
     ):
         path = tmp_path / "zk0" / module
         path.write_text(f"{path.read_text()}\n{line}  # noqa\n")
     done = lint_imports(tmp_path)
     assert done.returncode == 1 and "Contracts: 1 kept, 2 broken." in done.stdout, done.stdout[-3000:]
-    assert "zk0.sim is not allowed to import zk0.assets:\n\n- zk0.sim.scene -> zk0.assets" in done.stdout
-    assert "No cycles are allowed in zk0.\n" in done.stdout and "- .sim -> .assets (1 import)" in done.stdout
+    assert "zk0.sim is not allowed to import zk0.data:\n\n- zk0.sim.scene -> zk0.data.assets" in done.stdout
+    assert "No cycles are allowed in zk0.\n" in done.stdout and "- .sim -> .data (1 import)" in done.stdout
     assert "No cycles are allowed in zk0.bench." in done.stdout and "- .lora -> .learning (1 import)" in done.stdout

@@ -6,7 +6,7 @@ import logging
 
 from loguru import logger
 
-from zk0.logs import setup_logging
+from zk0.outputs.logs import setup_logging
 
 
 def emit_from_a_library():
@@ -32,13 +32,13 @@ def test_library_records_keep_their_real_caller(isolated_logging):
 def test_the_console_shows_zk0s_lines_for_a_person_and_the_files_keep_everything(
     isolated_logging, capsys, monkeypatch, tmp_path
 ):
-    from zk0.logs import add_file_sink, prints_to_log, say
+    from zk0.outputs.logs import add_file_sink, prints_to_log, say
 
     monkeypatch.delenv("ZK0_VERBOSE", raising=False)
     setup_logging("server")
     add_file_sink(tmp_path / "server.log", "server")
     say("Round {}/{}: 4 clients trained", 1, 8)
-    zk0_module = logger.patch(lambda record: record.update(name="zk0.aggregation"))
+    zk0_module = logger.patch(lambda record: record.update(name="zk0.federation.aggregation"))
     zk0_module.warning("Round 3: client 1's update is 1e+03x the median of the others'")
     zk0_module.error("zk0: Run-config key 'local-steps' got 0; expected a value >= 1.")
     zk0_module.info("Round 1 train on synth: {'train-loss': 1.9}")  # per-client detail: the file only
@@ -64,7 +64,7 @@ def test_verbose_puts_every_record_on_the_console(isolated_logging, capsys, monk
     monkeypatch.setenv("ZK0_VERBOSE", "1")
     setup_logging("server")
     emit_from_a_library()
-    from zk0.logs import prints_to_log
+    from zk0.outputs.logs import prints_to_log
 
     with prints_to_log("lerobot"):
         print("Reducing the number of VLM layers to 16 ...")

@@ -11,10 +11,11 @@ import pytest
 from flwr.app import ConfigRecord, Context, RecordDict
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
-from zk0 import app_fingerprint, client
+from zk0 import app_fingerprint
 from zk0.config import from_run_config
-from zk0.policy import backbone_fingerprint, trainable_tensors
-from zk0.wire import EVALUATE_ROUND, decode, encode
+from zk0.federation import client
+from zk0.federation.wire import EVALUATE_ROUND, decode, encode
+from zk0.learning.policy import backbone_fingerprint, trainable_tensors
 
 pytestmark = pytest.mark.usefixtures("flower_task", "isolated_logging")
 
@@ -93,9 +94,9 @@ def test_by_default_a_client_fine_tunes_only_for_the_models_a_run_keeps(registry
 def test_a_simulated_owner_rolls_both_models_out_in_its_own_conditions(tmp_path):
     """With sim-eval-episodes an owner recorded in the simulator also judges the global and the personal
     model in its own set-up, each rate with its interval, and the folder keeps both figures."""
-    from zk0.assets import ensure_dataset
-    from zk0.personal import build_personaliser
-    from zk0.registry import load_registry
+    from zk0.data.assets import ensure_dataset
+    from zk0.data.registry import load_registry
+    from zk0.federation.personal import build_personaliser
 
     registry = load_registry("configs/sim-registry.toml")
     entry = registry.get("sim-so101-left")

@@ -15,8 +15,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from zk0.cli import main as zk0_main
 from zk0.config import from_run_config
-from zk0.preflight import check_federation
-from zk0.registry import load_registry
+from zk0.data.registry import load_registry
+from zk0.learning.preflight import check_federation
 
 SERVER = """
 [tool.zk0.datasets.synth-so100-eval]
@@ -144,7 +144,7 @@ def test_each_bad_dataset_is_refused_in_one_sentence_by_zk0_check_and_a_run(kind
 def test_a_client_refuses_its_bad_dataset_with_an_error_reply_naming_it(good, tmp_path, flower_task, isolated_logging):
     """What the ClientApp sends back: Flower's error reply, with zk0's sentence as the reason."""
     from zk0.client_app import _reply
-    from zk0.errors import REFUSED
+    from zk0.common.errors import REFUSED
 
     root, cameras = broken("seven-joints", good, tmp_path)
     registry_file = registry_with(tmp_path, root, cameras)
@@ -188,8 +188,8 @@ def test_a_local_root_never_reaches_the_hub(good, tmp_path, monkeypatch):
 
 def held_out_client(good_root: Path, tmp_path: Path, max_skip: float):
     """A client whose last (held-out) episode's video file is overwritten with garbage of its size."""
-    from zk0.client import build_client
-    from zk0.registry import DatasetEntry
+    from zk0.data.registry import DatasetEntry
+    from zk0.federation.client import build_client
 
     root = write_dataset(tmp_path / "damaged", episodes=4, frames=16, one_file_each=True)
     videos = sorted((root / "videos").rglob("*.mp4"))
@@ -202,7 +202,7 @@ def held_out_client(good_root: Path, tmp_path: Path, max_skip: float):
 
 
 def test_evaluation_skips_and_counts_damaged_held_out_frames(good, tmp_path):
-    from zk0.training import evaluate
+    from zk0.learning.training import evaluate
 
     client = held_out_client(good, tmp_path, max_skip=0.6)
     metrics = evaluate(client.bundle, client.split, client.eval_batches, 8, seed=0, max_skip=0.6)
@@ -211,7 +211,7 @@ def test_evaluation_skips_and_counts_damaged_held_out_frames(good, tmp_path):
 
 
 def test_evaluation_past_max_skip_fraction_fails_in_one_sentence(good, tmp_path):
-    from zk0.training import TrainingError, evaluate
+    from zk0.learning.training import TrainingError, evaluate
 
     client = held_out_client(good, tmp_path, max_skip=0.1)
     with pytest.raises(TrainingError) as failed:
@@ -224,7 +224,7 @@ def test_evaluation_past_max_skip_fraction_fails_in_one_sentence(good, tmp_path)
 @pytest.mark.e2e
 def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkpoint(good, tmp_path):
     """The real `flwr run`: one sentence per bad dataset, no traceback, exit code, nothing written."""
-    from zk0.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
 
     seven = write_dataset(tmp_path / "seven", joints=7)
     empty = copy_of(good, tmp_path)
@@ -251,7 +251,7 @@ def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkp
 def test_a_first_round_that_cannot_train_stops_the_run_with_each_clients_sentence(good, tmp_path):
     """Videos that pass every metadata check but cannot be decoded: every client's round fails,
     so the run stops after round 1 with a non-zero exit, each sentence once, and no checkpoint."""
-    from zk0.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
 
     entries = ""
     for name in ("garbled-a", "garbled-b"):

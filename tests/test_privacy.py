@@ -11,11 +11,11 @@ from flwr.app import ArrayRecord, Message, MessageType, MetricRecord, RecordDict
 from flwr.serverapp.strategy import FedAvg
 
 from tests.test_aggregation import Recorder, reply
-from zk0.aggregation import ValidatingStrategy, array_signature
 from zk0.config import ConfigError, from_run_config
-from zk0.privacy import OwnerLevelDP, calibrated_noise
-from zk0.robust import make_rule
-from zk0.server_optimisers import make_strategy
+from zk0.federation.aggregation import ValidatingStrategy, array_signature
+from zk0.federation.privacy import OwnerLevelDP, calibrated_noise
+from zk0.federation.robust import make_rule
+from zk0.federation.server_optimisers import make_strategy
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 
@@ -235,7 +235,7 @@ def test_dp_off_is_flowers_weighted_mean_byte_for_byte():
 @pytest.fixture
 def private_client(registry):
     """Client 0 (6 training demonstrations) built for record-level DP, 4 demonstrations a step expected."""
-    from zk0.client import build_client
+    from zk0.federation.client import build_client
 
     run = from_run_config(
         {"batch-size": 4, "lr": 1e-3, "dp": "record", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 11.0}
@@ -273,7 +273,7 @@ def test_record_level_epsilon_is_opacus_accountants_and_the_budget_ends_training
     one sentence."""
     from opacus.accountants import RDPAccountant
 
-    from zk0.record_privacy import RecordBudgetSpent
+    from zk0.learning.record_privacy import RecordBudgetSpent
 
     trainer = private_client.trainer
     metrics = trainer.fit(4, 0.0, 0)
@@ -292,7 +292,7 @@ def test_record_level_epsilon_is_opacus_accountants_and_the_budget_ends_training
     assert metrics["record-epsilon"] <= 11.0 and metrics["local-steps"] == 2
     accountant.step(noise_multiplier=1.0, sample_rate=4 / 6)
     assert accountant.get_epsilon(1e-5) > 11.0, f"one more step than the {steps} taken passes the budget"
-    from zk0.training import metrics_tracker
+    from zk0.learning.training import metrics_tracker
 
     assert trainer._step(metrics_tracker(4, 100, 10), None) == 0, "a draw of no demonstration is a noise-only step"
     with pytest.raises(RecordBudgetSpent, match=r"its demonstrations have spent epsilon .* of dp-epsilon-budget=11"):
@@ -342,7 +342,7 @@ def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owne
     from opacus.accountants.utils import get_noise_multiplier
 
     from zk0.bench.privacy import noise_crossover
-    from zk0.registry import PROJECT_ROOT
+    from zk0.data.registry import PROJECT_ROOT
 
     args = argparse.Namespace(model="tiny", rounds=4, local_steps=3, lr=1e-3, delta=1e-5)
     found = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)

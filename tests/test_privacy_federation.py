@@ -7,7 +7,7 @@ import json
 import dp_accounting
 import pytest
 
-from zk0.simulation import cpu_federation, flwr_run, local_federation
+from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
 
 pytestmark = pytest.mark.e2e
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-from zk0.assets import ensure_dataset
 from zk0.cli import main as zk0_main
 from zk0.config import RunConfig
-from zk0.data import DataError, open_metadata
-from zk0.policy import PolicyError, build_policy
-from zk0.registry import PROJECT_ROOT, DatasetEntry, load_registry
-from zk0.simulation import CONNECTION, cpu_federation, local_federation, start_superlink, stop_superlink
+from zk0.data.assets import ensure_dataset
+from zk0.data.loaders import DataError, open_metadata
+from zk0.data.registry import PROJECT_ROOT, DatasetEntry, load_registry
+from zk0.deployment.simulation import CONNECTION, cpu_federation, local_federation, start_superlink, stop_superlink
+from zk0.learning.policy import PolicyError, build_policy
 
 # Hub-style ids for the generated datasets, as robot owners' registries name community datasets.
 HUB_IDS = {
@@ -119,7 +119,7 @@ def test_resume_after_sigkill_finishes_every_round_once(tmp_path, hub_home):
 def test_hub_style_entry_opens_from_lerobot_home(hub_home):
     home, registry = hub_home
     script = (
-        "from zk0.registry import load_registry; from zk0.data import open_metadata;"
+        "from zk0.data.registry import load_registry; from zk0.data.loaders import open_metadata;"
         f"r = load_registry({str(registry)!r}); m = open_metadata(r.get('lerobot/svla_so100_stacking'));"
         "print(m.root, m.total_episodes)"
     )

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from zk0.rates import bootstrap, compare_text, mcnemar, rate_metrics, rate_text, wilson
+from zk0.learning.rates import bootstrap, compare_text, mcnemar, rate_metrics, rate_text, wilson
 
 
 @pytest.mark.parametrize(

@@ -7,9 +7,9 @@ import dataclasses
 import pytest
 
 from zk0.config import RunConfig
-from zk0.data import DataError, open_metadata, split_episodes
-from zk0.policy import PolicyError, model_features
-from zk0.registry import RegistryError, load_registry
+from zk0.data.loaders import DataError, open_metadata, split_episodes
+from zk0.data.registry import RegistryError, load_registry
+from zk0.learning.policy import PolicyError, model_features
 
 
 def test_project_registry_lists_four_clients_and_a_server_dataset(registry):
@@ -51,9 +51,9 @@ def test_dataset_without_a_mapped_camera_is_refused_with_its_name(registry):
 
 
 def test_fewer_cameras_use_smolvla_empty_camera_slots(registry):
-    from zk0.data import open_split, train_loader
-    from zk0.policy import build_policy
-    from zk0.training import LocalTrainer
+    from zk0.data.loaders import open_split, train_loader
+    from zk0.learning.policy import build_policy
+    from zk0.learning.training import LocalTrainer
 
     entry = dataclasses.replace(registry.clients[1], cameras={"phone": "camera2"})
     meta = open_metadata(entry)
@@ -147,7 +147,7 @@ def test_last_episodes_are_held_out():
 
 
 def test_loader_workers_follow_the_client_cpus(monkeypatch):
-    from zk0.data import loader_workers
+    from zk0.data.loaders import loader_workers
 
     assert loader_workers(RunConfig(num_workers=3)) == 3
     assert loader_workers(RunConfig(num_workers=0)) == 0
@@ -157,8 +157,8 @@ def test_loader_workers_follow_the_client_cpus(monkeypatch):
 
 
 def test_spawned_workers_give_the_same_batches(registry):
-    from zk0.data import eval_loader, open_split
-    from zk0.policy import policy_config, resolve_device
+    from zk0.data.loaders import eval_loader, open_split
+    from zk0.learning.policy import policy_config, resolve_device
 
     entry = registry.clients[0]
     run = RunConfig(batch_size=4, num_workers=1)
@@ -170,7 +170,7 @@ def test_spawned_workers_give_the_same_batches(registry):
 
 
 def test_a_mapped_camera_the_dataset_lacks_is_an_empty_slot(registry):
-    from zk0.policy import build_policy
+    from zk0.learning.policy import build_policy
 
     entry = dataclasses.replace(registry.clients[1], cameras={"phone": "camera2", "overhead": "camera1"})
     bundle = build_policy(RunConfig(batch_size=2), open_metadata(entry), entry, registry.model_cameras())
@@ -180,7 +180,7 @@ def test_a_mapped_camera_the_dataset_lacks_is_an_empty_slot(registry):
 def test_opening_a_synthetic_entry_never_generates_it(registry, tmp_path, monkeypatch, capsys):
     """Generation is `zk0 assets`' job: a machine without the dataset is told so in one sentence."""
     from zk0.cli import main as zk0_main
-    from zk0.registry import RegistryError
+    from zk0.data.registry import RegistryError
 
     monkeypatch.setenv("ZK0_CACHE", str(tmp_path / "empty-cache"))
     entry = registry.get("synth-so100-pickplace")

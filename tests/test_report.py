@@ -8,8 +8,8 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 from tests.conftest import require_tool
-from zk0.artifacts import History
-from zk0.report import REPORT_FILE, write_report
+from zk0.outputs.artifacts import History
+from zk0.outputs.report import REPORT_FILE, write_report
 
 REFUSAL = "Client 2 (c<&>): Dataset 'c<&>' records no camera."
 

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from zk0.registry import PROJECT_ROOT
+from zk0.data.registry import PROJECT_ROOT
 
 TRAIN = str(PROJECT_ROOT / "train.sh")
 
@@ -88,7 +88,7 @@ def test_flower_packs_the_app_without_walking_the_linked_venv(tmp_path):
 
 def own_flower(tmp_path: Path) -> dict[str, str]:
     """An environment whose `flwr run` starts a SuperLink of its own (own home, own ports)."""
-    from zk0.simulation import free_port
+    from zk0.deployment.simulation import free_port
 
     return {
         **os.environ,
@@ -182,7 +182,7 @@ def test_ctrl_c_stops_the_run_at_once_and_prints_the_command_that_continues_it(t
 
     import psutil
 
-    from zk0.simulation import superlink_tree
+    from zk0.deployment.simulation import superlink_tree
 
     out = tmp_path / "outputs"
     env = own_flower(tmp_path) | {"COLUMNS": "80"}  # a narrow terminal: ps cuts command lines to it

@@ -9,11 +9,11 @@ from flwr.app import ArrayRecord, ConfigRecord
 from loguru import logger
 
 from tests.test_aggregation import Recorder, TwoNodes, arrays, reply
-from zk0.aggregation import ValidatingStrategy, array_signature
-from zk0.artifacts import save_checkpoint
-from zk0.config import SERVER_OPTIMISERS, ConfigError, from_run_config
-from zk0.resume import find_resume_point
-from zk0.server_optimisers import DEFAULT_LR, STATE, make_strategy, restore_state
+from zk0.config import DEFAULT_SERVER_LR, SERVER_OPTIMISERS, ConfigError, from_run_config
+from zk0.federation.aggregation import ValidatingStrategy, array_signature
+from zk0.federation.server_optimisers import STATE, make_strategy, restore_state
+from zk0.outputs.artifacts import save_checkpoint
+from zk0.outputs.resume import find_resume_point
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 
@@ -41,7 +41,7 @@ def train_round(strategy: ValidatingStrategy, server_round: int, start: ArrayRec
 
 
 def test_names_match_the_run_configs_choices():
-    assert tuple(DEFAULT_LR) == SERVER_OPTIMISERS == tuple(STATE)
+    assert tuple(DEFAULT_SERVER_LR) == SERVER_OPTIMISERS == tuple(STATE)
 
 
 def test_outer_nesterov_matches_a_hand_computed_two_round_example():

@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from zk0.assets import ensure_dataset
-from zk0.assets.datasets import JOINT_NAMES
 from zk0.config import ConfigError, from_run_config
-from zk0.registry import load_registry
+from zk0.data.assets import ensure_dataset
+from zk0.data.assets.datasets import JOINT_NAMES
+from zk0.data.registry import load_registry
 from zk0.sim.env import APART_M, HOLD_STEPS, JOINTS, PickCubeEnv, to_lerobot, to_mujoco
 from zk0.sim.expert import PickExpert
 from zk0.sim.record import demonstrate, episode_seed
@@ -121,8 +121,8 @@ def test_success_needs_the_cube_held_up_for_a_while(env):
 
 
 def test_recorded_demonstrations_pass_preflight_and_train(tmp_path):
-    from zk0.client import build_client
-    from zk0.registry import load_registry
+    from zk0.data.registry import load_registry
+    from zk0.federation.client import build_client
 
     root = ensure_dataset("sim-so101-left")
     meta = json.loads((root / "meta" / "info.json").read_text())
@@ -177,9 +177,9 @@ def test_a_cube_in_state_task_tells_the_policy_where_the_target_cube_is():
 
 
 def test_cube_in_state_demonstrations_record_eight_values_train_and_stay_out_of_a_six_value_federation(tmp_path):
-    from zk0.client import build_client
-    from zk0.preflight import DataError, ModelInputs, check_dataset
-    from zk0.registry import DatasetEntry
+    from zk0.data.registry import DatasetEntry
+    from zk0.federation.client import build_client
+    from zk0.learning.preflight import DataError, ModelInputs, check_dataset
     from zk0.sim.record import record_demonstrations
 
     spec = SIM_SPECS["sim-so101-left-cube"]
@@ -249,7 +249,7 @@ def test_a_machine_that_cannot_render_says_so_in_one_sentence():
 def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_model(tmp_path):
     """Two sim clients x 1 round through `flwr run`: success rates in the round JSON and history, a
     video, a success chart, models/best; then lerobot's `lerobot-eval` runs models/best on the env."""
-    from zk0.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
 
     for entry in load_registry(REGISTRY).entries:  # the server checks every client dataset before round 1
         ensure_dataset(entry.name)

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from zk0.bench.stash import Stash
-from zk0.errors import Zk0Error
+from zk0.common.errors import Zk0Error
 
 SETTINGS = {"rounds": 20, "lr": 1e-3, "federations": ["Nesterov"]}
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from lerobot.datasets.compute_stats import aggregate_stats
 
-from zk0.data import open_metadata
-from zk0.stats import stats_from_record, stats_to_record
+from zk0.data.loaders import open_metadata
+from zk0.federation.stats import stats_from_record, stats_to_record
 
 
 def test_stats_round_trip_and_merge(registry):

@@ -10,12 +10,12 @@ import math
 import pytest
 import torch
 
-from zk0.assets import ensure_dataset
-from zk0.client import build_client
-from zk0.policy import build_policy, set_trainable, snapshot
-from zk0.rates import wilson
-from zk0.registry import load_registry
-from zk0.training import PooledTrainer
+from zk0.data.assets import ensure_dataset
+from zk0.data.registry import load_registry
+from zk0.federation.client import build_client
+from zk0.learning.policy import build_policy, set_trainable, snapshot
+from zk0.learning.rates import wilson
+from zk0.learning.training import PooledTrainer
 
 
 def pooled_over(sessions, run, cameras):
@@ -217,7 +217,7 @@ def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(
     """The sim setting's result holds both summaries; the success lines come from the success one
     (they once read the action-MSE summary, which has the same keys, and printed its ratio)."""
     from zk0.bench.study import print_success, sim_summary
-    from zk0.rates import rate_metrics
+    from zk0.learning.rates import rate_metrics
 
     def rates(successes: int) -> dict:
         """Ten seeded episodes, the first ``successes`` of them lifted and held."""

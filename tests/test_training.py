@@ -11,9 +11,9 @@ import torch
 from lerobot.optim import CosineDecayWithWarmupSchedulerConfig
 
 from zk0.config import RunConfig
-from zk0.data import eval_loader, open_metadata, open_split, train_loader
-from zk0.policy import PolicyError, backbone_fingerprint, build_policy, get_trainable, set_trainable
-from zk0.training import FedProx, LocalTrainer, TrainingError, evaluate, set_schedule_step
+from zk0.data.loaders import eval_loader, open_metadata, open_split, train_loader
+from zk0.learning.policy import PolicyError, backbone_fingerprint, build_policy, get_trainable, set_trainable
+from zk0.learning.training import FedProx, LocalTrainer, TrainingError, evaluate, set_schedule_step
 
 
 def test_twenty_update_policy_steps_lower_the_loss(client_parts):
@@ -172,9 +172,9 @@ def test_a_compiled_policy_keeps_fedprox_and_its_compiled_code(registry, monkeyp
     trainable gradient, and the compiled code goes to $ZK0_CACHE/inductor for later processes."""
     import os
 
-    from zk0.cache import default_cache_root
-    from zk0.client import build_client
-    from zk0.data import prepare_batch
+    from zk0.common.cache import default_cache_root
+    from zk0.data.loaders import prepare_batch
+    from zk0.federation.client import build_client
 
     monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", "unset")  # recorded, so the test's end restores it
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR")

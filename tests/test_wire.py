@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from zk0.errors import Zk0Error
-from zk0.wire import MANIFEST, PACKED, decode, encode
+from zk0.common.errors import Zk0Error
+from zk0.federation.wire import MANIFEST, PACKED, decode, encode
 
 
 def test_bf16_round_trip_is_the_bf16_rounding_and_halves_the_bytes():
@@ -54,8 +54,8 @@ def test_fedavg_averages_decoded_values(flower_task):
     from flwr.app import ArrayRecord
 
     from tests.test_aggregation import Recorder, reply
-    from zk0.aggregation import ValidatingStrategy, array_signature
-    from zk0.server_optimisers import make_strategy
+    from zk0.federation.aggregation import ValidatingStrategy, array_signature
+    from zk0.federation.server_optimisers import make_strategy
 
     template = {"a": torch.zeros(2, 3), "b": torch.zeros(4)}
     strategy = ValidatingStrategy(

@@ -15,7 +15,8 @@ import pytest
 import torch
 from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MessageType, MetricRecord, RecordDict
 
-from zk0 import app_fingerprint, client_app, worker
+from zk0 import app_fingerprint, client_app
+from zk0.deployment import worker
 
 
 def through_socket(content: RecordDict) -> RecordDict:
@@ -54,10 +55,10 @@ def test_a_worker_that_cannot_start_leaves_the_message_to_the_clientapp(
     """A socket folder others may write in is refused; the message is answered in this process instead."""
     from loguru import logger
 
-    from zk0.client import build_client
     from zk0.config import RunConfig
-    from zk0.policy import backbone_fingerprint, trainable_tensors
-    from zk0.wire import decode, encode
+    from zk0.federation.client import build_client
+    from zk0.federation.wire import decode, encode
+    from zk0.learning.policy import backbone_fingerprint, trainable_tensors
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     shared = tmp_path / f"zk0-{os.getuid()}"
@@ -98,8 +99,8 @@ def test_the_private_folder_is_private_whoever_creates_it_first(tmp_path, monkey
     """On a new machine a SuperNode registers before any worker starts: the folder it creates is the
     workers' private folder (mode 0700), one of this user's left readable is tightened, and one that
     others may write in, or a link, is refused in one sentence."""
-    from zk0 import machine
-    from zk0.errors import Zk0Error
+    from zk0.common import machine
+    from zk0.common.errors import Zk0Error
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     private = tmp_path / f"zk0-{os.getuid()}"

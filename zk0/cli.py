@@ -13,8 +13,11 @@ from pathlib import Path
 from flwr.common.config import flatten_dict, parse_config_args
 from tqdm import tqdm
 
-from zk0 import deploy, machine
-from zk0.assets import (
+from zk0.common import machine
+from zk0.common.cache import default_cache_root
+from zk0.common.errors import OneSentenceParser, Zk0Error
+from zk0.config import RunConfig, from_run_config
+from zk0.data.assets import (
     BACKBONES,
     OFFLINE_BACKBONES,
     TINY_BACKBONE,
@@ -22,14 +25,12 @@ from zk0.assets import (
     ensure_backbone,
     ensure_dataset,
 )
-from zk0.assets.datasets import SPECS
-from zk0.cache import default_cache_root
-from zk0.certs import make_federation_certs
-from zk0.config import RunConfig, from_run_config
-from zk0.deploy import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
-from zk0.errors import OneSentenceParser, Zk0Error
-from zk0.logs import native_output_to
-from zk0.registry import PROJECT_ROOT, load_registry
+from zk0.data.assets.datasets import SPECS
+from zk0.data.registry import PROJECT_ROOT, load_registry
+from zk0.deployment import commands as deploy
+from zk0.deployment.certs import make_federation_certs
+from zk0.deployment.commands import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
+from zk0.outputs.logs import native_output_to
 from zk0.sim.tasks import SIM_SPECS
 
 
@@ -94,7 +95,7 @@ def _check(args: argparse.Namespace) -> int:
     if args.print:  # one flat override string for `flwr run --run-config`; datasets are not opened
         print(" ".join(f"{key}={_toml_value(value)}" for key, value in overrides.items()))
         return 0
-    from zk0.preflight import check_federation  # torch and lerobot: only when datasets are checked
+    from zk0.learning.preflight import check_federation  # torch and lerobot: only when datasets are checked
 
     report = check_federation(run, registry)
     for problem in report.problems:
@@ -144,7 +145,7 @@ def _supernode(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(" ".join(f"{k}={v}" for k, v in env.items()), shlex.join(command))
         return 0
-    from zk0.preflight import ModelInputs, check_dataset  # torch and lerobot: only when starting for real
+    from zk0.learning.preflight import ModelInputs, check_dataset  # torch and lerobot: only when starting for real
 
     check_dataset(entry, ModelInputs(tuple(registry.model_cameras())), eval_episodes=None)  # before connecting
     if args.cpus is None:
@@ -181,7 +182,7 @@ def run_command(command: list[str], dry_run: bool) -> None:
 
 def _export(args: argparse.Namespace) -> int:
     """An owner's policy, normalised for their robot, in a folder lerobot loads."""
-    from zk0.export import export_policy  # lerobot's processors: only for this command
+    from zk0.outputs.export import export_policy  # lerobot's processors: only for this command
 
     if args.personal and args.round is not None:
         raise Zk0Error("--round names a global checkpoint; a personal model is the one its client kept, so drop one.")

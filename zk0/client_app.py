@@ -1,9 +1,9 @@
 """zk0 ClientApp: one robot owner's dataset, local FedProx steps, held-out evaluation.
 
 The handlers are thin. In simulation, and on a SuperNode without the warm worker, the client
-is built and kept in this process (``zk0.client``). On a SuperNode started by ``zk0 supernode``
+is built and kept in this process (``zk0.federation.client``). On a SuperNode started by ``zk0 supernode``
 each message runs in a fresh process, so it is handed to the run's warm worker
-(``zk0.worker``), which keeps the client built for the whole run; this module then imports no
+(``zk0.deployment.worker``), which keeps the client built for the whole run; this module then imports no
 torch or lerobot at all, which is what keeps a message cheap.
 """
 
@@ -15,8 +15,8 @@ from flwr.app import Context, Error, Message, RecordDict
 from flwr.clientapp import ClientApp
 from loguru import logger
 
-from zk0 import worker
-from zk0.errors import REFUSED, Zk0Error
+from zk0.common.errors import REFUSED, Zk0Error
+from zk0.deployment import worker
 
 app = ClientApp()
 
@@ -54,7 +54,7 @@ def _handle(kind: str, msg: Message, context: Context) -> RecordDict:
             metrics = next(iter(reply.metric_records.values()))
             metrics.update({"startup-s": age, "worker-s": worker_s, "handler-s": time.perf_counter() - started})
             return reply
-    from zk0 import client  # torch, lerobot: only where this process does the work itself
+    from zk0.federation import client  # torch, lerobot: only where this process does the work itself
 
     reply = client.handle(kind, msg.content, context)
     next(iter(reply.metric_records.values()))["worker-s"] = 0.0

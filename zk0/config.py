@@ -15,26 +15,28 @@ from typing import Any
 
 from loguru import logger
 
-from zk0.errors import Zk0Error
+from zk0.common.errors import Zk0Error
 from zk0.sim.tasks import SIM_SPECS
 
 DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
-WIRE_DTYPES = ("bfloat16", "float32")  # zk0.wire encodes them
-OFFLINE_MODELS = ("tiny", "tiny-128", "full-size")  # built from a generated backbone with random weights (zk0.policy)
-PEFT_METHODS = ("none", "lora")  # zk0.adapters
-LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.adapters)
+WIRE_DTYPES = ("bfloat16", "float32")  # zk0.federation.wire encodes them
+OFFLINE_MODELS = ("tiny", "tiny-128", "full-size")  # built from a generated backbone with random weights (zk0.learning.policy)
+PEFT_METHODS = ("none", "lora")  # zk0.learning.adapters
+LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.learning.adapters)
 # SmolVLA's small state, action and time projections: by default trained in full next to the adapters
 # rather than adapted (PEFT's modules_to_save; docs/learning.md measured why).
 LORA_FULL_MODULES = "state_proj,action_in_proj,action_out_proj,action_time_mlp_in,action_time_mlp_out"
-SERVER_OPTIMISERS = ("fedavg", "fedavgm", "nesterov", "fedadam", "fedyogi")  # zk0.server_optimisers
-AVERAGINGS = ("fednova", "samples")  # how updates of unequal work are averaged (zk0.aggregation)
+# server-optimiser -> its server-lr when the run config leaves it at 0 (zk0.federation.server_optimisers)
+DEFAULT_SERVER_LR = {"fedavg": 1.0, "fedavgm": 1.0, "nesterov": 1.0, "fedadam": 1e-2, "fedyogi": 1e-2}
+SERVER_OPTIMISERS = tuple(DEFAULT_SERVER_LR)
+AVERAGINGS = ("fednova", "samples")  # how updates of unequal work are averaged (zk0.federation.aggregation)
 DP_KINDS = (
     "off",
     "owner",
     "record",
 )  # differential privacy: none, of each owner (server), of each demonstration (client)
-# How the server combines the round's updates (zk0.aggregation): the weighted mean, or one of Flower's robust rules
+# How the server combines the round's updates (zk0.federation.aggregation): the weighted mean, or one of Flower's robust rules
 AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum", "multi-krum")
 
 
@@ -54,7 +56,7 @@ class RunConfig:
     batch_size: int = 8
     lr: float = 1e-4
     proximal_mu: float = 0.0
-    server_optimiser: str = "nesterov"  # how the server steps from the averaged update (zk0.server_optimisers)
+    server_optimiser: str = "nesterov"  # how the server steps from the averaged update (zk0.federation.server_optimisers)
     server_lr: float = 0.0  # the server optimiser's learning rate; 0 = its default
     server_momentum: float = 0.5  # FedAvgM's and Nesterov's momentum
     update_clip: float = 3.0  # an update above this times the others' median is scaled to it; 0 = off
@@ -70,10 +72,10 @@ class RunConfig:
     chunk_size: int = 10
     device: str = "auto"
     seed: int = 42
-    num_workers: int = 0  # -1 = chosen from the CPUs this client has (zk0.data.loader_workers)
+    num_workers: int = 0  # -1 = chosen from the CPUs this client has (zk0.data.loaders.loader_workers)
     tolerance_s: float = 1e-4
     video_backend: str = "torchcodec"
-    frame_cache_gb: float = 20.0  # disk for decoded frames per dataset (zk0.frames); 0 = decode every batch
+    frame_cache_gb: float = 20.0  # disk for decoded frames per dataset (zk0.data.frames); 0 = decode every batch
     max_skip_fraction: float = 0.1
     output_dir: str = "outputs"
     registry: str = ""
@@ -83,7 +85,7 @@ class RunConfig:
     hf_push_every_checkpoint: bool = False
     resume_from: str = ""
     wire_dtype: str = "bfloat16"
-    compile: bool = False  # lerobot's compile_model; zk0.policy keeps the compiled code in $ZK0_CACHE
+    compile: bool = False  # lerobot's compile_model; zk0.learning.policy keeps the compiled code in $ZK0_CACHE
     phase_timeout: float = 3600.0  # seconds the server waits for a round's train (or evaluate) replies
     round_deadline_s: float = 0.0  # a round's train replies not in by then are dropped (not round 1); 0 = off
     peft: str = "none"  # "lora": train and exchange lerobot's LoRA adapters instead of all trainable weights
@@ -93,7 +95,7 @@ class RunConfig:
     lora_full_modules: str = LORA_FULL_MODULES  # comma-separated, trained in full next to the adapters; "" = none
     lora_average: str = "b"  # b: A frozen at its seeded start, B trained and averaged; ab: both trained and averaged
     sim_eval_episodes: int = 0  # closed-loop episodes in the simulator per evaluated round (zk0.sim); 0 = off
-    personal_steps: int = 0  # each client fine-tunes the global model this many steps when it evaluates (zk0.personal)
+    personal_steps: int = 0  # each client fine-tunes the global model this many steps when it evaluates (zk0.federation.personal)
     personal_mu: float = 0.0  # the personal model's proximal pull toward the global one while it fine-tunes
     personal_lr: float = 0.0  # that fine-tuning's peak learning rate; 0 = a quarter of lr
     personal_frequency: int = 0  # fine-tune when evaluating every Nth round and the last; 0 = in checkpoint rounds

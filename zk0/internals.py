@@ -23,7 +23,7 @@ from flwr.supercore.superexec.executor import subprocess_executor
 from flwr.superlink.grid import InMemoryGrid
 from flwr.supernode import start_client_internal as supernode_loop
 
-if TYPE_CHECKING:  # lerobot and torch load where they are used: `python -m zk0.supernode` needs neither
+if TYPE_CHECKING:  # lerobot and torch load where they are used: `python -m zk0.deployment.supernode` needs neither
     from lerobot.datasets.dataset_reader import DatasetReader
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
     from torch.optim.lr_scheduler import LRScheduler

@@ -2,11 +2,11 @@
 
 The server checks the datasets, builds the global policy exactly as clients do (same base,
 same seed) on its evaluation dataset, and runs Flower's round loop with the run's server
-optimiser (a Flower strategy, zk0.server_optimisers) inside ``ValidatingStrategy``: only the
+optimiser (a Flower strategy, zk0.federation.server_optimisers) inside ``ValidatingStrategy``: only the
 trainable arrays travel, updates are averaged by samples trained and stepped by the optimiser
 (whose state a resumed run gets back from its checkpoint), Flower's
 ``evaluate_fn`` (``ServerEvaluation``) evaluates the global model every ``eval-frequency``
-rounds, and ``RoundArtifacts`` (zk0.round_artifacts) writes what each round leaves.
+rounds, and ``RoundArtifacts`` (zk0.federation.round_artifacts) writes what each round leaves.
 """
 
 from __future__ import annotations
@@ -21,28 +21,36 @@ from flwr.serverapp import Grid, ServerApp
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from loguru import logger
 
-from zk0 import app_fingerprint, stopping
-from zk0.aggregation import ValidatingStrategy, array_signature
-from zk0.artifacts import History, new_run_dir, write_json
+from zk0 import app_fingerprint
+from zk0.common.errors import Zk0Error
 from zk0.config import RunConfig, from_run_config
-from zk0.data import DataError, DatasetSplit, eval_loader, open_evaluation
-from zk0.disk import bytes_needed, check_room, checkpoint_bytes, full_disk_in_one_sentence
-from zk0.errors import Zk0Error
-from zk0.grid import PromptGrid
+from zk0.data.loaders import DataError, DatasetSplit, eval_loader, open_evaluation
+from zk0.data.registry import Registry, load_registry
+from zk0.deployment.grid import PromptGrid
+from zk0.federation import stopping
+from zk0.federation.aggregation import ValidatingStrategy, array_signature
+from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
+from zk0.federation.robust import make_rule
+from zk0.federation.round_artifacts import RoundArtifacts
+from zk0.federation.server_optimisers import make_strategy, restore_state
+from zk0.federation.wire import SHAPE
 from zk0.internals import is_simulation, shorten_object_pull_backoff
-from zk0.logs import add_file_sink, prints_to_log, say, setup_logging
-from zk0.policy import PolicyBundle, backbone_fingerprint, build_policy, config_features, get_trainable, set_trainable
-from zk0.preflight import SIZED, check_federation
-from zk0.privacy import OwnerLevelDP, PrivacyBudgetSpent
-from zk0.registry import Registry, load_registry
-from zk0.report import REPORT_FILE
-from zk0.resume import ResumePoint, find_resume_point
-from zk0.robust import make_rule
-from zk0.round_artifacts import RoundArtifacts
-from zk0.server_optimisers import make_strategy, restore_state
-from zk0.tracking import Tracker
-from zk0.training import evaluate
-from zk0.wire import SHAPE
+from zk0.learning.policy import (
+    PolicyBundle,
+    backbone_fingerprint,
+    build_policy,
+    config_features,
+    get_trainable,
+    set_trainable,
+)
+from zk0.learning.preflight import SIZED, check_federation
+from zk0.learning.training import evaluate
+from zk0.outputs.artifacts import History, new_run_dir, write_json
+from zk0.outputs.disk import bytes_needed, check_room, checkpoint_bytes, full_disk_in_one_sentence
+from zk0.outputs.logs import add_file_sink, prints_to_log, say, setup_logging
+from zk0.outputs.report import REPORT_FILE
+from zk0.outputs.resume import ResumePoint, find_resume_point
+from zk0.outputs.tracking import Tracker
 
 app = ServerApp()
 
@@ -58,7 +66,7 @@ class ServerEvaluation:
         self.videos = run_dir / "server" / "videos"
         self.closed_loop = None
         if run.sim_eval_episodes:
-            from zk0.closed_loop import ClosedLoop  # MuJoCo and a renderer: only when asked for
+            from zk0.learning.closed_loop import ClosedLoop  # MuJoCo and a renderer: only when asked for
 
             height, width, _ = split.meta.features["observation.images.front"]["shape"]
             self.closed_loop = ClosedLoop(split.entry.name, run.sim_eval_episodes, run.seed, height, width)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import sys
 
-from zk0.assets import ensure_all
 from zk0.bench import (
     deployment,
     exchange,
@@ -24,6 +23,7 @@ from zk0.bench import (
     step,
     study,
 )
+from zk0.data.assets import ensure_all
 
 # Each module has ``main(argv)`` and ``build_parser()``.
 BENCHMARKS = {

@@ -1,7 +1,7 @@
 """Deployment benchmark: the same federation on a loopback Deployment Engine and in simulation.
 
 The Deployment Engine run is what robot owners run: a TLS SuperLink with SuperNode
-authentication and one ``zk0 supernode`` per client, each in its own folder (``zk0.loopback``).
+authentication and one ``zk0 supernode`` per client, each in its own folder (``zk0.deployment.loopback``).
 The simulation run is ``flwr run`` on a local simulation SuperLink (Ray). They run one after
 the other, ``--repeats`` times, interleaved. Printed: the wall time of every round of both,
 their ratio over the steady rounds (round 1 also builds every client), and for the deployment
@@ -11,7 +11,7 @@ evaluation, and handing the message to the warm worker and back. The fixed cost 
 round is everything that is not local steps or evaluation, given for each steady round and for
 the middle ones apart (the last round also writes the checkpoint and sends an evaluate message).
 ``--supernode-defaults`` also runs the deployment with ``zk0 supernode``'s default CPU share (no
-``--cpus``: the SuperNodes divide the machine, zk0.machine), next to the ``--cpus-per-node`` one.
+``--cpus``: the SuperNodes divide the machine, zk0.common.machine), next to the ``--cpus-per-node`` one.
 
     python -m zk0.bench deployment [--model full-size] [--rounds 3] [--local-steps 30] [--clients 2]
         [--batch-size 8] [--cpus-per-node N] [--supernode-defaults] [--peft lora] [--no-simulation]
@@ -28,10 +28,10 @@ import tempfile
 from pathlib import Path
 
 from zk0.bench.client import starting_checkpoint, write_json
-from zk0.errors import OneSentenceParser
-from zk0.loopback import loopback_federation
-from zk0.registry import load_registry
-from zk0.simulation import run_federation
+from zk0.common.errors import OneSentenceParser
+from zk0.data.registry import load_registry
+from zk0.deployment.loopback import loopback_federation
+from zk0.deployment.simulation import run_federation
 
 
 def run_config(args: argparse.Namespace) -> str:

@@ -25,12 +25,12 @@ from flwr.app import ArrayRecord, MetricRecord, RecordDict
 from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
 from zk0.bench.client import starting_checkpoint
+from zk0.common.errors import OneSentenceParser, positive
 from zk0.config import RunConfig
-from zk0.data import open_metadata
-from zk0.errors import OneSentenceParser, positive
-from zk0.policy import build_policy, trainable_tensors
-from zk0.registry import load_registry
-from zk0.wire import decode, encode
+from zk0.data.loaders import open_metadata
+from zk0.data.registry import load_registry
+from zk0.federation.wire import decode, encode
+from zk0.learning.policy import build_policy, trainable_tensors
 
 
 def best_of(repeat: int, fn) -> float:
@@ -64,7 +64,7 @@ def measure(tensors: dict[str, torch.Tensor], wire_dtype: str, clients: int, rep
 def variants(args) -> list[tuple[str, RunConfig]]:
     """What to measure: the trainable weights, and with ``--peft lora`` the same starting weights
     trained in full next to LoRA's two averaging modes and adapters with SmolVLA's small
-    projections trained in full (zk0.adapters)."""
+    projections trained in full (zk0.learning.adapters)."""
     model = "full-size" if args.full_size else "tiny"
     if args.peft == "none":
         return [("full", RunConfig(model=model, device="cpu"))]

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 from zk0.bench.client import write_json
-from zk0.errors import OneSentenceParser
+from zk0.common.errors import OneSentenceParser
 
 CONSUMER_GPU_GIB = 24.0
 

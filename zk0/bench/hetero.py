@@ -1,6 +1,6 @@
 """Hetero benchmark: owners with different hardware, fixed steps against a time budget.
 
-One loopback Deployment Engine federation (``zk0.loopback``: a TLS SuperLink and one
+One loopback Deployment Engine federation (``zk0.deployment.loopback``: a TLS SuperLink and one
 ``zk0 supernode`` per owner) in which the last ``--slow`` owners' SuperNodes are each held to
 ``--share`` of the CPU for the whole benchmark (``zk0.bench.throttle``: SIGSTOP/SIGCONT
 duty-cycling, as cpulimit does). Three runs on it, one after another: every client taking
@@ -34,19 +34,19 @@ import tempfile
 from contextlib import ExitStack
 from pathlib import Path
 
-from zk0.artifacts import checkpoints
 from zk0.bench.client import write_json
 from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.throttle import Throttle
+from zk0.common.errors import OneSentenceParser, positive
 from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.data import open_evaluation, open_metadata
-from zk0.errors import OneSentenceParser, positive
-from zk0.logs import native_output_to
-from zk0.loopback import loopback_federation
-from zk0.policy import build_policy
-from zk0.rates import compare_text, mcnemar, rate_text
-from zk0.registry import PROJECT_ROOT, Registry, load_registry
-from zk0.resume import checkpoint_trainable
+from zk0.data.loaders import open_evaluation, open_metadata
+from zk0.data.registry import PROJECT_ROOT, Registry, load_registry
+from zk0.deployment.loopback import loopback_federation
+from zk0.learning.policy import build_policy
+from zk0.learning.rates import compare_text, mcnemar, rate_text
+from zk0.outputs.artifacts import checkpoints
+from zk0.outputs.logs import native_output_to
+from zk0.outputs.resume import checkpoint_trainable
 
 SETTINGS = {  # --setting -> its registry ("" = pyproject.toml's four synthetic owners)
     "mild": "",

@@ -1,7 +1,7 @@
 """Inputs benchmark: which inputs a centrally trained policy uses (real, blank or shuffled images; shuffled state).
 
 It trains one policy on every client's data pooled (the study's centralised baseline,
-``zk0.training.PooledTrainer``) for ``--steps``, then evaluates it on the server's held-out
+``zk0.learning.training.PooledTrainer``) for ``--steps``, then evaluates it on the server's held-out
 episodes as the server does, four times: as recorded; with every camera black; with each
 sample's camera frames swapped for another sample's of the same batch; with the joint state
 swapped likewise. A policy that looks at the cube loses accuracy when frames are swapped; one
@@ -17,13 +17,13 @@ from dataclasses import replace
 import torch
 
 from zk0.bench.client import write_json
-from zk0.client import build_client
+from zk0.common.errors import OneSentenceParser, positive
 from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.data import eval_loader, open_evaluation, open_metadata
-from zk0.errors import OneSentenceParser, positive
-from zk0.policy import build_policy, set_trainable, snapshot
-from zk0.registry import load_registry
-from zk0.training import PooledTrainer, evaluate
+from zk0.data.loaders import eval_loader, open_evaluation, open_metadata
+from zk0.data.registry import load_registry
+from zk0.federation.client import build_client
+from zk0.learning.policy import build_policy, set_trainable, snapshot
+from zk0.learning.training import PooledTrainer, evaluate
 
 VARIANTS = ("recorded", "blank images", "shuffled images", "shuffled state")
 

@@ -23,8 +23,8 @@ from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from zk0.bench.lora import lora_check
 from zk0.bench.models import federate, server_rows
-from zk0.errors import OneSentenceParser, positive
-from zk0.registry import load_registry
+from zk0.common.errors import OneSentenceParser, positive
+from zk0.data.registry import load_registry
 
 
 def actions(entry, episodes: list[int] | None = None) -> np.ndarray:

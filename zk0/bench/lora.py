@@ -5,7 +5,7 @@ point: a short full federation's final checkpoint. From it the same rounds x ste
 as federations through the real app (``flwr run``):
 
 - ``full``: the trainable weights trained in full;
-- ``lora b`` and ``lora ab``: LoRA on SmolVLA's default targets in both averaging modes (zk0.adapters),
+- ``lora b`` and ``lora ab``: LoRA on SmolVLA's default targets in both averaging modes (zk0.learning.adapters),
   every target adapted;
 - ``lora b+proj`` (zk0's default): adapters on the action expert's q/v, with SmolVLA's five small
   state, action and time projections trained in full instead (``lora-full-modules``);
@@ -32,10 +32,10 @@ from zk0.bench.models import (
     sent_bytes,
     server_rows,
 )
-from zk0.client import build_client
 from zk0.config import LORA_FULL_MODULES, from_run_config
-from zk0.policy import snapshot
-from zk0.registry import load_registry
+from zk0.data.registry import load_registry
+from zk0.federation.client import build_client
+from zk0.learning.policy import snapshot
 
 
 def variants(args: argparse.Namespace) -> dict[str, dict]:

@@ -18,7 +18,7 @@ import psutil
 import torch
 
 from zk0.bench.client import add_client_options, bench_client, write_json
-from zk0.errors import OneSentenceParser
+from zk0.common.errors import OneSentenceParser
 
 GIB = 2**30
 

@@ -2,7 +2,7 @@
 
 A federation through the real app (``flwr run``, simulated clients) and its history; on the same
 clients, model, batch size and samples, centralised training (every client's batches pooled),
-the equal-steps variant of it and each client alone (zk0.training.PooledTrainer, the clients' own
+the equal-steps variant of it and each client alone (zk0.learning.training.PooledTrainer, the clients' own
 trainers); and every model evaluated on every client's held-out episodes and on the server's set,
 offline and (for simulated owners) in closed loop, with each set's own processors, as the
 federation's clients and server evaluate. ``zk0.bench.learning``, ``lora``, ``study`` and
@@ -19,17 +19,17 @@ from pathlib import Path
 
 import torch
 
-from zk0.assets import ensure_dataset
 from zk0.bench.stash import Stash
-from zk0.client import ClientSession
 from zk0.config import RunConfig
-from zk0.data import eval_loader, open_evaluation, open_metadata
-from zk0.personal import fine_tuner
-from zk0.policy import build_policy, set_trainable, snapshot
-from zk0.registry import Registry
+from zk0.data.assets import ensure_dataset
+from zk0.data.loaders import eval_loader, open_evaluation, open_metadata
+from zk0.data.registry import Registry
+from zk0.deployment.simulation import run_federation
+from zk0.federation.client import ClientSession
+from zk0.federation.personal import fine_tuner
+from zk0.learning.policy import build_policy, set_trainable, snapshot
+from zk0.learning.training import PooledTrainer, evaluate
 from zk0.sim.tasks import SIM_SPECS
-from zk0.simulation import run_federation
-from zk0.training import PooledTrainer, evaluate
 
 EVAL_ALL = 1000  # eval-batches: every held-out batch of the synthetic datasets
 SERVER = "server"  # the server's evaluation set, as a column of the matrices
@@ -120,7 +120,7 @@ def local_only(session: ClientSession, run: RunConfig, start: Weights) -> Weight
 
 def fine_tuned(session: ClientSession, run: RunConfig, start: Weights) -> Weights:
     """``start`` fine-tuned on the client's own training episodes as a federation's client
-    fine-tunes its personal model (zk0.personal: ``personal-steps`` at ``personal-lr``)."""
+    fine-tunes its personal model (zk0.federation.personal: ``personal-steps`` at ``personal-lr``)."""
     set_trainable(session.bundle, start)
     fine_tuner(run, session.bundle, session.split).fit(run.personal_steps, run.personal_mu, global_step=0)
     return snapshot(session.bundle)
@@ -172,7 +172,7 @@ def closed_loop_all(
     ``outcomes`` (1 = success, in seed order: every model meets the same ``episodes`` episodes,
     seeded from ``seed``, so two can be compared pairwise). Each rollout's figures are kept in
     ``stash`` as it finishes, or taken from it; a set whose rollouts are all kept builds no envs."""
-    from zk0.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
+    from zk0.learning.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
 
     def name(column: str, label: str) -> str:
         return f"rollouts-{episodes}/{column}/{label}"

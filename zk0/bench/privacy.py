@@ -40,21 +40,21 @@ from pathlib import Path
 
 import torch
 
-from zk0.artifacts import checkpoints
 from zk0.bench.client import write_json
 from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.robust import scaled_client_app
-from zk0.client import build_client
+from zk0.common.errors import OneSentenceParser, Zk0Error, positive
 from zk0.config import AGGREGATIONS, OFFLINE_MODELS, RunConfig, from_run_config
-from zk0.data import open_evaluation, open_metadata
-from zk0.errors import OneSentenceParser, Zk0Error, positive
-from zk0.logs import native_output_to
-from zk0.policy import build_policy, snapshot
-from zk0.privacy import calibrated_noise
-from zk0.rates import mcnemar, rate_text, wilson
-from zk0.registry import PROJECT_ROOT, load_registry
-from zk0.resume import checkpoint_trainable
-from zk0.simulation import run_federation
+from zk0.data.loaders import open_evaluation, open_metadata
+from zk0.data.registry import PROJECT_ROOT, load_registry
+from zk0.deployment.simulation import run_federation
+from zk0.federation.client import build_client
+from zk0.federation.privacy import calibrated_noise
+from zk0.learning.policy import build_policy, snapshot
+from zk0.learning.rates import mcnemar, rate_text, wilson
+from zk0.outputs.artifacts import checkpoints
+from zk0.outputs.logs import native_output_to
+from zk0.outputs.resume import checkpoint_trainable
 
 NON_PRIVATE = "non-private"
 NOISELESS = {"dp-epsilon-budget": 1e30, "dp-noise-multiplier": 1e-12}  # clipping and draws alone

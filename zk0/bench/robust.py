@@ -23,10 +23,10 @@ import re
 import sys
 from pathlib import Path
 
+from zk0.common.errors import OneSentenceParser, positive
 from zk0.config import RunConfig
-from zk0.errors import OneSentenceParser, positive
-from zk0.registry import PROJECT_ROOT
-from zk0.simulation import run_federation
+from zk0.data.registry import PROJECT_ROOT
+from zk0.deployment.simulation import run_federation
 
 FAULTY_CLIENT = '''"""zk0's ClientApp, except that client {index} sends {factor} times the change it trained."""
 
@@ -34,7 +34,7 @@ from flwr.app import Message
 from flwr.clientapp import ClientApp
 
 from zk0 import client_app
-from zk0.wire import decode, encode
+from zk0.federation.wire import decode, encode
 
 app = ClientApp()
 app.evaluate()(client_app.evaluate)

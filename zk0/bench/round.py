@@ -16,8 +16,8 @@ import json
 import sys
 from pathlib import Path
 
-from zk0.errors import OneSentenceParser
-from zk0.simulation import run_federation
+from zk0.common.errors import OneSentenceParser
+from zk0.deployment.simulation import run_federation
 
 
 def build_parser() -> OneSentenceParser:

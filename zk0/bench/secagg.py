@@ -43,7 +43,7 @@ from flwr.serverapp import ServerApp
 from flwr.simulation import run_simulation
 
 from zk0.bench.client import write_json
-from zk0.errors import OneSentenceParser, positive
+from zk0.common.errors import OneSentenceParser, positive
 
 MIB = 2**20
 

@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from zk0.bench.client import write_json
-from zk0.errors import OneSentenceParser, positive
-from zk0.rates import rate_text
+from zk0.common.errors import OneSentenceParser, positive
+from zk0.learning.rates import rate_text
 from zk0.sim.env import PickCubeEnv
 from zk0.sim.expert import PickExpert
 from zk0.sim.record import demonstrate, episode_seed, record_demonstrations
@@ -83,12 +83,12 @@ def closed_loop_cost(episodes: int, reference: int) -> dict:
     from lerobot.envs.factory import make_env
     from lerobot.scripts.lerobot_eval import eval_policy
 
-    from zk0.assets import ensure_dataset
-    from zk0.closed_loop import ClosedLoop
     from zk0.config import RunConfig
-    from zk0.data import open_metadata
-    from zk0.policy import build_policy
-    from zk0.registry import load_registry
+    from zk0.data.assets import ensure_dataset
+    from zk0.data.loaders import open_metadata
+    from zk0.data.registry import load_registry
+    from zk0.learning.closed_loop import ClosedLoop
+    from zk0.learning.policy import build_policy
 
     registry = load_registry(SIM_REGISTRY)
     entry = registry.get(CONDITIONS)

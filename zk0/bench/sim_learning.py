@@ -1,7 +1,7 @@
 """Sim learning: does a centrally trained SmolVLA pick the cube up? Success rate along training.
 
 One policy is trained on every simulated owner's demonstrations pooled (the study's centralised
-baseline, ``zk0.training.PooledTrainer``: each batch through its own client's processors) and
+baseline, ``zk0.learning.training.PooledTrainer``: each batch through its own client's processors) and
 rolled out in the simulator every ``--every`` steps on the same seeded episodes in the server's
 conditions, as the federation's closed-loop evaluation does: success, graded rates (reached,
 grasped, lifted) and CPU time, so a learning curve in success rate rather than action MSE. The
@@ -21,13 +21,13 @@ from pathlib import Path
 
 from zk0.bench.client import write_json
 from zk0.bench.models import generate
-from zk0.client import build_client
+from zk0.common.errors import OneSentenceParser, positive
 from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.data import open_metadata
-from zk0.errors import OneSentenceParser, positive
-from zk0.policy import build_policy, set_trainable, snapshot
-from zk0.registry import load_registry
-from zk0.training import PooledTrainer
+from zk0.data.loaders import open_metadata
+from zk0.data.registry import load_registry
+from zk0.federation.client import build_client
+from zk0.learning.policy import build_policy, set_trainable, snapshot
+from zk0.learning.training import PooledTrainer
 
 REGISTRY = "configs/sim-registry.toml"
 REGISTRIES = (REGISTRY, "configs/sim-cube-registry.toml")  # from the frames; told where the cube is
@@ -35,7 +35,7 @@ REGISTRIES = (REGISTRY, "configs/sim-cube-registry.toml")  # from the frames; to
 
 def rollout_rows(run: RunConfig, steps: int, every: int, episodes: int, videos: Path | None) -> list[dict]:
     """Train centrally for ``steps`` and roll out after every ``every``: one row per rollout."""
-    from zk0.closed_loop import ClosedLoop  # MuJoCo: loaded only to roll out
+    from zk0.learning.closed_loop import ClosedLoop  # MuJoCo: loaded only to roll out
 
     registry = load_registry(run.registry)
     server = registry.get(run.server_eval_dataset)

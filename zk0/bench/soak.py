@@ -3,7 +3,7 @@
 One federation of ``--rounds`` rounds (the tiny model, ``--clients`` clients, a few local steps, a
 checkpoint every ``--checkpoint-interval`` rounds with ``keep-checkpoints``' default), run with
 ``flwr run`` as a user runs it: in simulation, or with ``--deployment`` on a loopback Deployment
-Engine (zk0.loopback: a TLS SuperLink and one ``zk0 supernode`` per client). Watched from outside
+Engine (zk0.deployment.loopback: a TLS SuperLink and one ``zk0 supernode`` per client). Watched from outside
 (zk0.bench.watch): at the end of every round the server side's resident memory (the SuperLink, its
 SuperExec, the process that runs the ServerApp), each client process's (a Ray actor, or a
 SuperNode's warm worker), the SuperNodes' own, their open file descriptors and threads, and the
@@ -25,10 +25,10 @@ from matplotlib.figure import Figure
 
 from zk0.bench.client import write_json
 from zk0.bench.watch import Watch
-from zk0.errors import OneSentenceParser, positive
-from zk0.loopback import loopback_federation
-from zk0.registry import load_registry
-from zk0.simulation import run_federation
+from zk0.common.errors import OneSentenceParser, positive
+from zk0.data.registry import load_registry
+from zk0.deployment.loopback import loopback_federation
+from zk0.deployment.simulation import run_federation
 
 
 def growth(rows: list[dict], start: int) -> dict:

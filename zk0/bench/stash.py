@@ -23,7 +23,7 @@ from typing import Any
 import torch
 from safetensors.torch import load_file, save_file
 
-from zk0.errors import Zk0Error
+from zk0.common.errors import Zk0Error
 
 SETTINGS_FILE = "settings.json"
 

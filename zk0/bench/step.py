@@ -32,9 +32,9 @@ from lerobot.utils.logging_utils import MetricsTracker
 from torch.utils.data import DataLoader
 
 from zk0.bench.client import add_client_options, bench_client, write_json
-from zk0.data import loader_workers, open_split, train_loader
-from zk0.errors import OneSentenceParser
-from zk0.training import LocalTrainer, metrics_tracker, peak_memory
+from zk0.common.errors import OneSentenceParser
+from zk0.data.loaders import loader_workers, open_split, train_loader
+from zk0.learning.training import LocalTrainer, metrics_tracker, peak_memory
 
 
 def _sync(device: torch.device) -> None:

@@ -6,18 +6,18 @@ On the same synthetic clients, model, batch size and number of samples, with one
 - the federation through the real app (``flwr run``, simulated clients), once per
   ``--federations`` entry: FedProx (plain averaging with ``--proximal-mu``), and with
   ``proximal-mu = 0`` FedAvg and each server optimiser (FedAvgM, Nesterov, FedAdam, FedYogi:
-  zk0.server_optimisers, at their defaults or ``--server-lr``/``--server-momentum``);
+  zk0.federation.server_optimisers, at their defaults or ``--server-lr``/``--server-momentum``);
 - **centralised**: one policy and one optimizer on every client's training episodes pooled,
   taking batches from each client's own loader in turn, each preprocessed with that client's
   own processors (camera mapping, normalisation), for as many steps as all clients take in the
-  federation together (zk0.training.PooledTrainer);
+  federation together (zk0.learning.training.PooledTrainer);
 - **equal steps**: the same pooled training for only the federation's sequential steps (rounds x
   local steps), each on a batch from every client together (batch = clients x batch): the same
   samples again, so it splits "fewer sequential steps" from "federating";
 - **local-only**: each client alone, for the steps it takes in the federation;
 
 - with ``--personal-steps N``, **personal** *i*: the first federation's model fine-tuned N steps on
-  client *i*'s own data as a federation's client fine-tunes its personal model (zk0.personal, a
+  client *i*'s own data as a federation's client fine-tunes its personal model (zk0.federation.personal, a
   quarter of ``--lr``), and each local-only model fine-tuned alike, so the two have seen as many
   samples; the paired comparisons in each owner's own conditions then answer "what does joining
   give my robot";
@@ -72,13 +72,13 @@ from zk0.bench.models import (
     local_only,
 )  # fmt: skip
 from zk0.bench.stash import Stash
-from zk0.client import build_client
+from zk0.common.errors import OneSentenceParser, Zk0Error, positive
 from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.errors import OneSentenceParser, Zk0Error, positive
-from zk0.policy import PolicyBundle, snapshot
-from zk0.rates import bootstrap, compare_text, mcnemar, rate_metrics
-from zk0.registry import PROJECT_ROOT, load_registry
-from zk0.resume import find_resume_point
+from zk0.data.registry import PROJECT_ROOT, load_registry
+from zk0.federation.client import build_client
+from zk0.learning.policy import PolicyBundle, snapshot
+from zk0.learning.rates import bootstrap, compare_text, mcnemar, rate_metrics
+from zk0.outputs.resume import find_resume_point
 
 SETTINGS = {
     "mild": "",
@@ -550,7 +550,7 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument(
         "--personal-steps", type=int, default=0,
         help="also each owner's personal model: the first federation's model fine-tuned this many steps on its own "
-        "data at a quarter of --lr (zk0.personal), and each local-only model fine-tuned alike; 0 = none",
+        "data at a quarter of --lr (zk0.federation.personal), and each local-only model fine-tuned alike; 0 = none",
     )  # fmt: skip
     parser.add_argument(
         "--seeds", nargs="+", type=int, default=[RunConfig.seed],

@@ -20,22 +20,22 @@ from pathlib import Path
 
 import psutil
 
-from zk0.simulation import superlink_tree
+from zk0.deployment.simulation import superlink_tree
 
 MIB = 2**20
 # What each process of a federation is, by a word in its command line (the first that matches).
 # In simulation flwr-simulation runs the ServerApp and the Simulation Engine, which holds the N
 # SuperNodes, and Ray's actors run the ClientApps. In a deployment flwr-serverapp runs the ServerApp
-# and each SuperNode's warm worker (zk0.worker) keeps its client; a SuperNode's own processes (its
+# and each SuperNode's warm worker (zk0.deployment.worker) keeps its client; a SuperNode's own processes (its
 # SuperExec, fork server and the ClientApp process relaying each message) are "supernode".
 ROLES = {
     "ClientAppActor": "client",
-    "zk0.worker": "client",
+    "zk0.deployment.worker": "client",
     "flwr-simulation": "simulation",
     "flwr-serverapp": "serverapp",
-    "zk0.supernode": "supernode",
-    "zk0.superexec": "supernode",
-    "zk0.forkserver": "supernode",
+    "zk0.deployment.supernode": "supernode",
+    "zk0.deployment.superexec": "supernode",
+    "zk0.deployment.forkserver": "supernode",
     "flwr-clientapp": "supernode",
     "flower-superexec": "superexec",
     "flower-superlink": "superlink",

@@ -1,5 +1,5 @@
 """The SO-101 pick-up task in MuJoCo: scene, gymnasium env (a lerobot ``EnvConfig``), scripted
-expert and demonstrations. It knows nothing of SmolVLA or the federation: zk0.closed_loop rolls
+expert and demonstrations. It knows nothing of SmolVLA or the federation: zk0.learning.closed_loop rolls
 a policy out in it.
 
 MuJoCo renders headless through EGL unless ``MUJOCO_GL`` says otherwise; it reads the variable
@@ -10,7 +10,7 @@ import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from zk0.errors import Zk0Error  # noqa: E402
+from zk0.common.errors import Zk0Error  # noqa: E402
 
 
 class RenderError(Zk0Error):

@@ -133,7 +133,7 @@ class PickCubeEnv(gym.Env):
     def act(self, action) -> tuple[float, bool]:
         """``step`` without the observation: the servos move to ``action`` for one control period.
         Returns the graded reward so far (0-3) and whether the cube has now been held up long
-        enough (success, which ends the episode). zk0.closed_loop renders only the steps a
+        enough (success, which ends the episode). zk0.learning.closed_loop renders only the steps a
         chunking policy reads, so it calls this and ``observe`` apart."""
         target = np.clip(np.asarray(action, dtype=np.float64), self.action_space.low, self.action_space.high)
         self.data.ctrl[:] = to_mujoco(target, self.gripper_range)

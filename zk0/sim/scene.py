@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from zk0.cache import default_cache_root
+from zk0.common.cache import default_cache_root
 from zk0.sim import load_mujoco
 from zk0.sim.tasks import Look
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from zk0.catalogue import Catalogue
+from zk0.common.catalogue import Catalogue
 
 # Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
 RECORDER_VERSION = 3
