@@ -181,7 +181,8 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     """The sim setting's closed-loop matrix (the federations that feed it are the other settings'
     code, tested end to end above): every model in the server's conditions and each client's own,
     with that set's processors; the start in the server's only; the targets computed from it."""
-    from zk0.bench.study import closed_loop_all, evaluation_sets, rollout_plan, sim_summary, study_run
+    from zk0.bench.study import closed_loop_all, evaluation_sets, rollout_plan, study_run
+    from zk0.bench.study_tables import sim_summary
 
     args = argparse.Namespace(
         rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128", personal_steps=0
@@ -216,7 +217,7 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
 def test_the_sim_targets_are_printed_from_the_success_matrix_not_the_action_mse(capsys):
     """The sim setting's result holds both summaries; the success lines come from the success one
     (they once read the action-MSE summary, which has the same keys, and printed its ratio)."""
-    from zk0.bench.study import print_success, sim_summary
+    from zk0.bench.study_tables import print_success, sim_summary
     from zk0.learning.rates import rate_metrics
 
     def rates(successes: int) -> dict:
@@ -253,7 +254,7 @@ def test_over_seeds_every_rate_has_its_mean_spread_and_interval_and_the_targets_
     """Two training seeds of ten episodes: the tables give each rate's mean over the seeds, its
     Wilson interval over all twenty episodes and the lowest and highest seed; the targets are
     computed from the paired episodes of both seeds."""
-    from zk0.bench.study import over_seeds, print_over_seeds
+    from zk0.bench.study_tables import over_seeds, print_over_seeds
 
     def seeded(successes: dict[str, list[int]]) -> list[dict]:
         """Per seed, per model: its successes in each set (the first k of ten episodes succeed)."""
