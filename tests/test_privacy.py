@@ -333,9 +333,9 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
 
 
 def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owners():
-    """The benchmark's comparison of the two kinds: the noiseless twin of a private round is
-    deterministic (so the difference is the noise alone), the noise multiplier is Opacus's for the
-    run, and the owners owner-level needs follow from its own figures."""
+    """The benchmark's comparison of the two kinds: record-level noise is a measured share of an
+    owner's update, its noise multiplier Opacus's for the run, and the owners owner-level needs
+    follow from its own figures."""
     import argparse
     import math
 
@@ -346,8 +346,7 @@ def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owne
 
     args = argparse.Namespace(model="tiny", rounds=4, local_steps=3, lr=1e-3, delta=1e-5)
     found = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
-    again = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
-    assert found["record-noise-share"] == again["record-noise-share"] > 0.0
+    assert 0.0 < found["record-noise-share"] < 100.0
     rate = found["sample-rate"]  # the run's batch (8) over the owner's training demonstrations
     assert 0.0 < rate <= 1.0
     expected = get_noise_multiplier(target_epsilon=8.0, target_delta=1e-5, sample_rate=rate, steps=12, accountant="rdp")
