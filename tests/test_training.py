@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 import time
 
@@ -208,3 +209,41 @@ def test_a_compiled_policy_keeps_fedprox_and_its_compiled_code(registry, monkeyp
     assert client.trainer.fedprox.loss() == pytest.approx(0.5 / 2 * 0.01**2 * moved, rel=1e-3)
     cache = default_cache_root() / "inductor"
     assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(cache) and any(cache.rglob("*.py")), "compiled code kept"
+
+
+def test_image_transforms_are_lerobots_on_training_frames_only(registry):
+    """``image-transforms``: lerobot's own ImageTransforms, drawn per frame, on the batches the client
+    trains on; the frames stay frames (shape, [0, 1]); evaluation is never augmented (the same
+    figures as a client without transforms, from the same starting weights)."""
+    from lerobot.transforms.transforms import ImageTransforms
+
+    from zk0.config import from_run_config
+    from zk0.data.loaders import prepare_batch
+    from zk0.federation.client import build_client
+    from zk0.learning.augmentation import augment
+    from zk0.learning.training import evaluate
+
+    keys = {"batch-size": 4, "eval-batches": 1}
+    augmented_client = build_client(
+        from_run_config({**keys, "image-transforms": True, "image-transforms-max": 6, "image-transforms-brightness": 0.6}),
+        registry.clients[0], registry.model_cameras(),
+    )  # fmt: skip
+    plain_client = build_client(from_run_config(keys), registry.clients[0], registry.model_cameras())
+    trainer, meta = augmented_client.trainer, augmented_client.split.meta
+    assert isinstance(trainer.transforms, ImageTransforms) and plain_client.trainer.transforms is None
+    assert trainer.transforms.transforms["brightness"].brightness == pytest.approx((0.4, 1.6))
+
+    batch = next(iter(trainer.loader))
+    key = meta.camera_keys[0]
+    plain = prepare_batch(dict(batch), meta.camera_keys, None, trainer.bundle.device)[key].clone()
+    augmented = augment(prepare_batch(dict(batch), meta.camera_keys, None, trainer.bundle.device),
+                        meta.camera_keys, trainer.transforms)[key]  # fmt: skip
+    assert augmented.shape == plain.shape and 0.0 <= augmented.min() and augmented.max() <= 1.0
+    assert all(not torch.equal(a, p) for a, p in zip(augmented, plain, strict=True)), "every frame changes"
+    assert not torch.equal(augmented[0] - plain[0], augmented[1] - plain[1]), "each frame has its own draw"
+
+    def judged(session):
+        return evaluate(session.bundle, session.split, session.eval_batches, 1, 0, 1.0)["action-mse"]
+
+    assert judged(augmented_client) == judged(plain_client)
+    assert math.isfinite(trainer.fit(2, 0.0, global_step=0)["train-loss"]), "the client trains on augmented frames"

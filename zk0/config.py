@@ -99,6 +99,9 @@ class RunConfig:
     personal_mu: float = 0.0  # the personal model's proximal pull toward the global one while it fine-tunes
     personal_lr: float = 0.0  # that fine-tuning's peak learning rate; 0 = a quarter of lr
     personal_frequency: int = 0  # fine-tune when evaluating every Nth round and the last; 0 = in checkpoint rounds
+    image_transforms: bool = False  # lerobot's ImageTransforms on every training frame, on the owner's machine
+    image_transforms_max: int = 3  # at most this many of them per frame (lerobot's max_num_transforms)
+    image_transforms_brightness: float = 0.2  # brightness drawn within 1 +- this (lerobot's default 0.2)
     dp: str = "off"  # differential privacy: off | owner (Flower's central DP) | record (DP-SGD on each owner's machine)
     dp_clip: float = 1.0  # owner: the L2 bound on each owner's update; record: on each demonstration's gradient
     dp_noise_multiplier: float = (
@@ -178,6 +181,8 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "personal_mu": (0, None, False),
     "personal_lr": (0, 1, False),
     "personal_frequency": (0, None, False),
+    "image_transforms_max": (1, 6, False),
+    "image_transforms_brightness": (0, 1, True),
     "dp_clip": (0, None, True),
     "dp_noise_multiplier": (0, None, False),
     "dp_delta": (0, 1, True),

@@ -25,6 +25,7 @@ from lerobot.datasets import compute_sampler_state
 from lerobot.optim.factory import make_optimizer_and_scheduler
 from lerobot.policies.common.vla_utils import resize_with_pad
 from lerobot.scripts.lerobot_train import update_policy
+from lerobot.transforms.transforms import ImageTransforms
 from lerobot.utils.constants import OBS_LANGUAGE_ATTENTION_MASK, OBS_LANGUAGE_TOKENS
 from lerobot.utils.logging_utils import AverageMeter, MetricsTracker
 from loguru import logger
@@ -34,6 +35,7 @@ from zk0.common.errors import Zk0Error
 from zk0.config import RunConfig
 from zk0.data.loaders import DatasetSplit, prepare_batch
 from zk0.internals import set_last_lr
+from zk0.learning.augmentation import augment, frame_transforms
 from zk0.learning.policy import PolicyBundle, rng_devices
 
 
@@ -135,6 +137,7 @@ class LocalTrainer:
     scheduler: torch.optim.lr_scheduler.LambdaLR = field(init=False)
     accelerator: Accelerator = field(init=False)
     fedprox: FedProx = field(init=False)
+    transforms: ImageTransforms | None = field(init=False, default=None)  # image-transforms
     _batches: Iterator | None = field(init=False, default=None)
     batches_seen: int = field(init=False, default=0)  # batches drawn so far in this run (data order position)
 
@@ -153,6 +156,7 @@ class LocalTrainer:
         self.accelerator = accelerator_for(self.bundle.device)
         params = dict(self.bundle.policy.named_parameters())
         self.fedprox = FedProx({n: params[n] for n in self.bundle.trainable_names})
+        self.transforms = frame_transforms(self.run)
 
     @property
     def dataset_name(self) -> str:
@@ -163,7 +167,10 @@ class LocalTrainer:
         """A loader batch on the device, preprocessed with this client's processors: its camera
         mapping, task text and normalisation statistics."""
         meta, bundle = self.split.meta, self.bundle
-        return bundle.preprocessor(prepare_batch(batch, meta.camera_keys, self.split.entry.task, bundle.device))
+        batch = prepare_batch(batch, meta.camera_keys, self.split.entry.task, bundle.device)
+        if self.transforms is not None:
+            batch = augment(batch, meta.camera_keys, self.transforms)
+        return bundle.preprocessor(batch)
 
     def _open_batches(self) -> None:
         """Open the data iterator if it is not open (opening one draws from PyTorch's generator)."""
