@@ -214,6 +214,35 @@ def test_many_simulated_owners_are_parts_of_the_servers_span():
     assert len({s.task.look for s in owners}) == 64 and len({s.task.region for s in owners}) == 64
 
 
+def test_conditions_outside_the_span_lie_beyond_every_owner_on_the_axis_they_vary():
+    """The span is measured, not assumed: every hand-written set-up, the server's and the first 1000
+    generated owners. Each outside condition is beyond it on its one axis and the server's elsewhere."""
+    from zk0.sim.tasks import OUTSIDE, OWNERS
+
+    looks = [spec.task.look for spec in OWNERS] + [SIM_SPECS[f"sim-so101-owner-{i}"].task.look for i in range(1000)]
+    lights = [look.light for look in looks]
+    tints = [c for look in looks for c in look.light_tint]
+    sideways = [abs(look.front_camera[1]) for look in looks]
+    heights = [look.front_camera[2] for look in looks]
+    tables = [c for look in looks for c in look.table_rgba[:3]]
+    beyond = {
+        "dim": lambda look: look.light < min(lights) - 0.05,
+        "bright": lambda look: look.light > max(lights) + 0.05,
+        "tint": lambda look: min(look.light_tint) < min(tints) - 0.05,
+        "camera": lambda look: abs(look.front_camera[1]) > max(sideways) + 0.02
+        and not min(heights) <= look.front_camera[2] <= max(heights),
+        "table": lambda look: max(look.table_rgba[:3]) < min(tables) - 0.05 or min(look.table_rgba[:3]) > max(tables) + 0.05,
+    }
+    assert set(beyond) == set(OUTSIDE)
+    for axis in OUTSIDE:
+        for index in range(20):
+            spec = SIM_SPECS[f"sim-so101-outside-{axis}-{index}"]
+            assert beyond[axis](spec.task.look), (axis, index, spec.task.look)
+            assert replace(spec.task, look=SERVER_TASK.look) == SERVER_TASK and spec.role == "server"
+            assert SIM_SPECS[f"{spec.name}-cube"].task.cube_in_state
+        assert len({SIM_SPECS[f"sim-so101-outside-{axis}-{i}"].task.look for i in range(20)}) == 20
+
+
 def test_sim_evaluation_needs_a_simulated_server_set():
     with pytest.raises(ConfigError, match="'sim-eval-episodes' = 3.*server-eval-dataset='synth-so100-eval'"):
         from_run_config({"sim-eval-episodes": 3})

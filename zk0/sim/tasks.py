@@ -114,6 +114,12 @@ OWNERS: tuple[DemoSpec, ...] = (
     DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
 )
 OWNER_SEED = 2026  # owner N's set-up comes from numpy's generator seeded with (OWNER_SEED, N)
+# What generated owners' rooms are drawn from: together with the hand-written owners', the span of
+# conditions a federation trains in (conditions outside it are drawn beyond every bound).
+OWNER_LIGHT = (0.55, 0.9)  # the main light's diffuse intensity
+OWNER_TINT = (0.85, 1.0)  # each channel of the light's tint
+OWNER_CAMERA = ((0.53, 0.57), (-0.08, 0.08), (0.42, 0.47))  # the front camera's x, y, z (m)
+OWNER_TABLE = (0.45, 0.6)  # each channel of the table's colour
 
 
 def sim_owner(index: int) -> DemoSpec:
@@ -124,10 +130,10 @@ def sim_owner(index: int) -> DemoSpec:
     x0, y0 = float(rng.uniform(0.16, 0.22)), float(rng.uniform(-0.12, 0.0))
     colours = rng.choice(len(SERVER_TASK.colours), size=2, replace=False)
     look = Look(
-        light=float(rng.uniform(0.55, 0.9)),
-        light_tint=tuple(float(c) for c in rng.uniform(0.85, 1.0, size=3)),
-        front_camera=(float(rng.uniform(0.53, 0.57)), float(rng.uniform(-0.08, 0.08)), float(rng.uniform(0.42, 0.47))),
-        table_rgba=(*(float(c) for c in rng.uniform(0.45, 0.6, size=3)), 1.0),
+        light=float(rng.uniform(*OWNER_LIGHT)),
+        light_tint=tuple(float(c) for c in rng.uniform(*OWNER_TINT, size=3)),
+        front_camera=tuple(float(rng.uniform(*axis)) for axis in OWNER_CAMERA),
+        table_rgba=(*(float(c) for c in rng.uniform(*OWNER_TABLE, size=3)), 1.0),
     )
     task = SimTask(
         region=(x0, x0 + 0.06, y0, y0 + 0.12),
@@ -139,14 +145,51 @@ def sim_owner(index: int) -> DemoSpec:
     )
 
 
+OUTSIDE_SEED = 2027
+OUTSIDE = ("dim", "bright", "tint", "camera", "table")  # the look's axes a condition outside the span varies
+
+
+def outside_condition(axis: str, index: int) -> DemoSpec:
+    """Condition ``index`` outside the span on one ``axis`` (``sim-so101-outside-<axis>-<index>``):
+    the server's task and look with that one axis drawn beyond every owner's, so a benchmark measures
+    how a model generalises, not how it was tuned. A pure function of its name, like the owners."""
+    rng = np.random.default_rng([OUTSIDE_SEED, OUTSIDE.index(axis), index])
+    look = SERVER_TASK.look
+    if axis == "dim":
+        look = replace(look, light=float(rng.uniform(0.2, 0.45)))
+    elif axis == "bright":
+        look = replace(look, light=float(rng.uniform(1.0, 1.3)))
+    elif axis == "tint":  # one channel far below any owner's (the lowest is the right owner's blue, 0.75)
+        tint = [1.0, 1.0, 1.0]
+        tint[int(rng.integers(3))] = float(rng.uniform(0.35, 0.65))
+        look = replace(look, light_tint=tuple(tint))
+    elif axis == "camera":  # moved sideways past the owners' spread, and higher or lower than any
+        x, _, _ = look.front_camera
+        side = float(rng.choice([-1.0, 1.0])) * float(rng.uniform(0.11, 0.16))
+        height = float(rng.choice([rng.uniform(0.36, 0.40), rng.uniform(0.49, 0.52)]))
+        look = replace(look, front_camera=(x, side, height))
+    else:  # a table darker or lighter than any owner's, in every channel
+        low = bool(rng.integers(2))
+        colour = rng.uniform(0.1, 0.25, size=3) if low else rng.uniform(0.72, 0.9, size=3)
+        look = replace(look, table_rgba=(*(float(c) for c in colour), 1.0))
+    return DemoSpec(
+        f"sim-so101-outside-{axis}-{index}",
+        f"zk0/sim_so101_outside_{axis}_{index}",
+        replace(SERVER_TASK, look=look),
+        episodes=6,
+        role="server",
+    )
+
+
 def _generated(match) -> DemoSpec:
-    owner = sim_owner(int(match["index"]))
-    return with_cube_in_state(owner) if match["cube"] else owner
+    kind, index = match["kind"], int(match["index"])
+    spec = sim_owner(index) if kind == "owner" else outside_condition(kind.removeprefix("outside-"), index)
+    return with_cube_in_state(spec) if match["cube"] else spec
 
 
 SIM_SPECS: Catalogue[DemoSpec] = Catalogue(
     {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))},
-    r"sim-so101-owner-(?P<index>\d+)(?P<cube>-cube)?",
+    rf"sim-so101-(?P<kind>owner|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?",
     _generated,
-    "sim-so101-owner-<N>[-cube]",
+    "sim-so101-owner-<N>[-cube], sim-so101-outside-<dim|bright|tint|camera|table>-<N>[-cube]",
 )
