@@ -84,7 +84,7 @@ def flower_task():
 
 @pytest.fixture
 def isolated_logging():
-    """For a test whose code calls ``zk0.outputs.logs.setup_logging`` (directly or by handling a message):
+    """For a test whose code calls ``zk0.artifacts.logs.setup_logging`` (directly or by handling a message):
     the standard-library logging it rewires is put back, and loguru is left as a fresh process
     has it, so later tests see the logging they would alone."""
     import logging
@@ -92,7 +92,7 @@ def isolated_logging():
 
     from loguru import logger
 
-    from zk0.outputs import logs
+    from zk0.artifacts import logs
 
     names = ["", "flwr", "lerobot", "ray", "accelerate", "httpx", "httpcore", "urllib3", "filelock"]
     saved = {name: (logging.getLogger(name), logging.getLogger(name).handlers[:]) for name in names}

@@ -13,6 +13,8 @@ from lerobot.policies import make_policy
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from safetensors.torch import load_file
 
+from zk0.artifacts.resume import find_resume_point
+from zk0.artifacts.run_folder import save_checkpoint
 from zk0.common.errors import Zk0Error
 from zk0.config import LORA_FULL_MODULES, ConfigError, RunConfig, from_run_config
 from zk0.data.loaders import open_metadata, prepare_batch
@@ -20,8 +22,6 @@ from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
 from zk0.federation.client import build_client
 from zk0.federation.wire import encode
 from zk0.learning.policy import backbone_fingerprint, build_policy, set_trainable, trainable_tensors
-from zk0.outputs.artifacts import save_checkpoint
-from zk0.outputs.resume import find_resume_point
 
 
 @pytest.fixture(scope="module")

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
+from zk0.artifacts.tracking import Tracker
 from zk0.config import RunConfig
 from zk0.data.registry import RegistryError
 from zk0.federation.client import client_index
-from zk0.outputs.tracking import Tracker
 
 
 def test_node_config_names_the_dataset_else_partition_id(registry):

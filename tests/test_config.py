@@ -94,8 +94,8 @@ def test_checkpoint_schedule_keeps_every_interval_and_the_last_round():
 
 
 def test_an_output_dir_that_cannot_be_created_is_named(tmp_path):
+    from zk0.artifacts.run_folder import new_run_dir
     from zk0.common.errors import Zk0Error
-    from zk0.outputs.artifacts import new_run_dir
 
     (tmp_path / "file").write_text("not a folder")
     with pytest.raises(Zk0Error, match="'output-dir' got .*file/runs.*expected a writable folder"):

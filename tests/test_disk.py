@@ -1,4 +1,4 @@
-"""Will the run fit? The disk checked before round 1 (zk0.outputs.disk), and what keep-checkpoints bounds."""
+"""Will the run fit? The disk checked before round 1 (zk0.artifacts.disk), and what keep-checkpoints bounds."""
 
 from __future__ import annotations
 
@@ -10,9 +10,7 @@ import subprocess
 
 import pytest
 
-from zk0.common.errors import Zk0Error
-from zk0.config import RunConfig
-from zk0.outputs.disk import (
+from zk0.artifacts.disk import (
     GB,
     PER_ROUND_BYTES,
     bytes_needed,
@@ -23,6 +21,8 @@ from zk0.outputs.disk import (
     is_full,
     size,
 )
+from zk0.common.errors import Zk0Error
+from zk0.config import RunConfig
 
 FULL_SIZE = 1.8e9  # a full-size SmolVLA checkpoint (docs/performance.md)
 
@@ -69,7 +69,7 @@ def test_a_long_full_size_run_stays_under_ten_gigabytes_at_the_default():
 
 
 def test_the_estimate_holds_a_checkpoint_as_written(tmp_path, client_parts):
-    from zk0.outputs.artifacts import save_checkpoint
+    from zk0.artifacts.run_folder import save_checkpoint
 
     bundle = client_parts[0]
     trainable = {name: p.detach().numpy() for name, p in bundle.policy.named_parameters() if p.requires_grad}
@@ -114,7 +114,7 @@ def test_a_full_disk_leaves_no_half_file_and_reads_as_one_sentence(tmp_path):
     import torch
     from safetensors.torch import save_file
 
-    from zk0.outputs.artifacts import write_json
+    from zk0.artifacts.run_folder import write_json
 
     with small_disk(tmp_path / "disk", 1) as disk:
         fill(disk, leave=4096)

@@ -116,11 +116,11 @@ def checkpoint_config(path: Path) -> None:
 def run_folder(path: Path) -> None:
     """The run folder the example names, as a federation leaves it: a checkpoint keeping client 0's
     statistics, and client 0's personal model."""
+    from zk0.artifacts.run_folder import PERSONAL, client_dir, save_checkpoint
     from zk0.config import RunConfig
     from zk0.data.loaders import open_metadata
     from zk0.data.registry import load_registry
     from zk0.learning.policy import build_policy
-    from zk0.outputs.artifacts import PERSONAL, client_dir, save_checkpoint
 
     if (path / "server").is_dir():
         return

@@ -6,11 +6,11 @@ import torch
 from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 from lerobot.processor import PolicyProcessorPipeline
 
+from zk0.artifacts.run_folder import PERSONAL, client_dir, save_checkpoint
 from zk0.cli import main
 from zk0.config import RunConfig
 from zk0.data.loaders import open_metadata
 from zk0.learning.policy import build_policy
-from zk0.outputs.artifacts import PERSONAL, client_dir, save_checkpoint
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import logging
 
 from loguru import logger
 
-from zk0.outputs.logs import setup_logging
+from zk0.artifacts.logs import setup_logging
 
 
 def emit_from_a_library():
@@ -32,7 +32,7 @@ def test_library_records_keep_their_real_caller(isolated_logging):
 def test_the_console_shows_zk0s_lines_for_a_person_and_the_files_keep_everything(
     isolated_logging, capsys, monkeypatch, tmp_path
 ):
-    from zk0.outputs.logs import add_file_sink, prints_to_log, say
+    from zk0.artifacts.logs import add_file_sink, prints_to_log, say
 
     monkeypatch.delenv("ZK0_VERBOSE", raising=False)
     setup_logging("server")
@@ -64,7 +64,7 @@ def test_verbose_puts_every_record_on_the_console(isolated_logging, capsys, monk
     monkeypatch.setenv("ZK0_VERBOSE", "1")
     setup_logging("server")
     emit_from_a_library()
-    from zk0.outputs.logs import prints_to_log
+    from zk0.artifacts.logs import prints_to_log
 
     with prints_to_log("lerobot"):
         print("Reducing the number of VLM layers to 16 ...")

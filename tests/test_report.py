@@ -8,8 +8,8 @@ from html.parser import HTMLParser
 from pathlib import Path
 
 from tests.conftest import require_tool
-from zk0.outputs.artifacts import History
-from zk0.outputs.report import REPORT_FILE, write_report
+from zk0.artifacts.report import REPORT_FILE, write_report
+from zk0.artifacts.run_folder import History
 
 REFUSAL = "Client 2 (c<&>): Dataset 'c<&>' records no camera."
 

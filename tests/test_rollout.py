@@ -6,7 +6,7 @@ lerobot 0.6 removed ``lerobot-record --policy.path``; its replacement, ``lerobot
 ``lerobot.rollout.build_rollout_context`` loads the weights, makes the processors with
 ``make_pre_post_processors(pretrained_path=..., preprocessor_overrides={device, rename_map})``, and
 wires them to the robot and a ``SyncInferenceEngine``. These tests run that code on a checkpoint
-written by ``zk0.outputs.artifacts.save_checkpoint``, with one substitution: the SO-101 follower keeps its
+written by ``zk0.artifacts.run_folder.save_checkpoint``, with one substitution: the SO-101 follower keeps its
 real joint and camera features but its motor bus and cameras are a fixed synthetic scene.
 
 No ``from __future__ import annotations`` here: ``parser.wrap`` reads the config class from the
@@ -47,11 +47,11 @@ def checkpoint(tmp_path_factory):
     """
     from lerobot.processor import rename_stats
 
+    from zk0.artifacts.run_folder import save_checkpoint
     from zk0.config import from_run_config
     from zk0.data.loaders import open_metadata
     from zk0.data.registry import load_registry
     from zk0.federation.client import build_client
-    from zk0.outputs.artifacts import save_checkpoint
 
     registry = load_registry()
     client = build_client(from_run_config({"batch-size": 4}), registry.clients[0], registry.model_cameras())

@@ -7,10 +7,10 @@ from types import SimpleNamespace
 import torch
 from flwr.app import ArrayRecord, MetricRecord
 
+from zk0.artifacts.run_folder import History
 from zk0.config import RunConfig
 from zk0.federation import round_artifacts
 from zk0.federation.round_artifacts import RoundArtifacts
-from zk0.outputs.artifacts import History
 
 
 def test_each_round_ends_with_a_line_a_person_reads(tmp_path, monkeypatch):
@@ -48,7 +48,7 @@ def test_with_a_time_budget_the_round_line_says_the_steps_the_clients_took(tmp_p
 
 def server_artifacts(run: RunConfig, tmp_path, client_parts, registry) -> RoundArtifacts:
     """The server's writer for ``run`` on the first client's policy, writing under ``tmp_path``."""
-    from zk0.outputs.tracking import Tracker
+    from zk0.artifacts.tracking import Tracker
 
     history = History(tmp_path, {0: registry.clients[0].name}, {})
     server = registry.get(run.server_eval_dataset)
@@ -104,8 +104,8 @@ def test_a_best_round_that_keeps_a_checkpoint_links_models_best_to_its_files(tmp
 
     from safetensors.torch import load_file
 
+    from zk0.artifacts.run_folder import SERVER_STATE_FILE
     from zk0.learning.policy import get_trainable
-    from zk0.outputs.artifacts import SERVER_STATE_FILE
 
     run = RunConfig(num_server_rounds=4, checkpoint_interval=2)
     artifacts = server_artifacts(run, tmp_path, client_parts, registry)
@@ -142,8 +142,8 @@ def test_only_the_newest_checkpoints_are_kept_and_models_best_outlives_its_own(t
     Rollout videos alike: the newest two and the best round's (the ones the report shows)."""
     from safetensors.torch import load_file
 
+    from zk0.artifacts.run_folder import checkpoints
     from zk0.learning.policy import get_trainable
-    from zk0.outputs.artifacts import checkpoints
 
     run = RunConfig(num_server_rounds=4, checkpoint_interval=1, keep_checkpoints=2)
     artifacts = server_artifacts(run, tmp_path, client_parts, registry)

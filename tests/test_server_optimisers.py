@@ -9,11 +9,11 @@ from flwr.app import ArrayRecord, ConfigRecord
 from loguru import logger
 
 from tests.test_aggregation import Recorder, TwoNodes, arrays, reply
+from zk0.artifacts.resume import find_resume_point
+from zk0.artifacts.run_folder import save_checkpoint
 from zk0.config import DEFAULT_SERVER_LR, SERVER_OPTIMISERS, ConfigError, from_run_config
 from zk0.federation.aggregation import ValidatingStrategy, array_signature
 from zk0.federation.server_optimisers import STATE, make_strategy, restore_state
-from zk0.outputs.artifacts import save_checkpoint
-from zk0.outputs.resume import find_resume_point
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 

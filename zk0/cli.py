@@ -13,6 +13,7 @@ from pathlib import Path
 from flwr.common.config import flatten_dict, parse_config_args
 from tqdm import tqdm
 
+from zk0.artifacts.logs import native_output_to
 from zk0.common import machine
 from zk0.common.cache import default_cache_root
 from zk0.common.errors import OneSentenceParser, Zk0Error
@@ -30,7 +31,6 @@ from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.deployment import commands as deploy
 from zk0.deployment.certs import make_federation_certs
 from zk0.deployment.commands import SUPEREXEC_POLL, node_config, superlink_command, supernode_command, thread_env
-from zk0.outputs.logs import native_output_to
 from zk0.sim.tasks import SIM_SPECS
 
 
@@ -182,7 +182,7 @@ def run_command(command: list[str], dry_run: bool) -> None:
 
 def _export(args: argparse.Namespace) -> int:
     """An owner's policy, normalised for their robot, in a folder lerobot loads."""
-    from zk0.outputs.export import export_policy  # lerobot's processors: only for this command
+    from zk0.artifacts.export import export_policy  # lerobot's processors: only for this command
 
     if args.personal and args.round is not None:
         raise Zk0Error("--round names a global checkpoint; a personal model is the one its client kept, so drop one.")

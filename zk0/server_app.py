@@ -22,6 +22,12 @@ from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from loguru import logger
 
 from zk0 import app_fingerprint
+from zk0.artifacts.disk import bytes_needed, check_room, checkpoint_bytes, full_disk_in_one_sentence
+from zk0.artifacts.logs import add_file_sink, prints_to_log, say, setup_logging
+from zk0.artifacts.report import REPORT_FILE
+from zk0.artifacts.resume import ResumePoint, find_resume_point
+from zk0.artifacts.run_folder import History, new_run_dir, write_json
+from zk0.artifacts.tracking import Tracker
 from zk0.common.errors import Zk0Error
 from zk0.config import RunConfig, from_run_config
 from zk0.data.loaders import DataError, DatasetSplit, eval_loader, open_evaluation
@@ -45,12 +51,6 @@ from zk0.learning.policy import (
 )
 from zk0.learning.preflight import SIZED, check_federation
 from zk0.learning.training import evaluate
-from zk0.outputs.artifacts import History, new_run_dir, write_json
-from zk0.outputs.disk import bytes_needed, check_room, checkpoint_bytes, full_disk_in_one_sentence
-from zk0.outputs.logs import add_file_sink, prints_to_log, say, setup_logging
-from zk0.outputs.report import REPORT_FILE
-from zk0.outputs.resume import ResumePoint, find_resume_point
-from zk0.outputs.tracking import Tracker
 
 app = ServerApp()
 

@@ -7,6 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
+from zk0.artifacts.run_folder import save_checkpoint
 from zk0.common.cache import default_cache_root
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data.assets import ensure_dataset
@@ -16,7 +17,6 @@ from zk0.data.registry import DatasetEntry, Registry, load_registry
 from zk0.federation.client import build_client
 from zk0.learning.policy import build_policy
 from zk0.learning.training import LocalTrainer
-from zk0.outputs.artifacts import save_checkpoint
 
 
 def add_client_options(parser: argparse.ArgumentParser) -> None:

@@ -34,6 +34,9 @@ import tempfile
 from contextlib import ExitStack
 from pathlib import Path
 
+from zk0.artifacts.logs import native_output_to
+from zk0.artifacts.resume import checkpoint_trainable
+from zk0.artifacts.run_folder import checkpoints
 from zk0.bench.client import write_json
 from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.throttle import Throttle
@@ -44,9 +47,6 @@ from zk0.data.registry import PROJECT_ROOT, Registry, load_registry
 from zk0.deployment.loopback import loopback_federation
 from zk0.learning.policy import build_policy
 from zk0.learning.rates import compare_text, mcnemar, rate_text
-from zk0.outputs.artifacts import checkpoints
-from zk0.outputs.logs import native_output_to
-from zk0.outputs.resume import checkpoint_trainable
 
 SETTINGS = {  # --setting -> its registry ("" = pyproject.toml's four synthetic owners)
     "mild": "",

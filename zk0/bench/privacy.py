@@ -40,6 +40,9 @@ from pathlib import Path
 
 import torch
 
+from zk0.artifacts.logs import native_output_to
+from zk0.artifacts.resume import checkpoint_trainable
+from zk0.artifacts.run_folder import checkpoints
 from zk0.bench.client import write_json
 from zk0.bench.models import SERVER, closed_loop_all, generate
 from zk0.bench.robust import scaled_client_app
@@ -52,9 +55,6 @@ from zk0.federation.client import build_client
 from zk0.federation.privacy import calibrated_noise
 from zk0.learning.policy import build_policy, snapshot
 from zk0.learning.rates import mcnemar, rate_text, wilson
-from zk0.outputs.artifacts import checkpoints
-from zk0.outputs.logs import native_output_to
-from zk0.outputs.resume import checkpoint_trainable
 
 NON_PRIVATE = "non-private"
 NOISELESS = {"dp-epsilon-budget": 1e30, "dp-noise-multiplier": 1e-12}  # clipping and draws alone

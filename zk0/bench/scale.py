@@ -24,13 +24,13 @@ import sys
 import time
 from pathlib import Path
 
+from zk0.artifacts.logs import native_output_to
 from zk0.bench.client import write_json
 from zk0.bench.watch import Watch
 from zk0.common.errors import OneSentenceParser, positive
 from zk0.data.assets import ensure_dataset
 from zk0.data.registry import load_registry
 from zk0.deployment.simulation import run_federation
-from zk0.outputs.logs import native_output_to
 
 
 def owners_registry(folder: Path, owners: int) -> Path:

@@ -52,6 +52,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from zk0.artifacts.resume import find_resume_point
 from zk0.bench.models import (
     EVAL_ALL,
     SERVER,
@@ -81,7 +82,6 @@ from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.federation.client import build_client
 from zk0.learning.policy import PolicyBundle, snapshot
-from zk0.outputs.resume import find_resume_point
 
 SETTINGS = {
     "mild": "",

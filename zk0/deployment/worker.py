@@ -181,8 +181,8 @@ def _spawn(path: Path) -> subprocess.Popen:
 # The worker's side.
 def serve(path: Path, supernode_pid: int) -> None:
     """Answer messages on ``path`` until the run's last message, the SuperNode's exit or ``IDLE_S``."""
+    from zk0.artifacts.logs import setup_logging
     from zk0.federation import client  # the heavy imports (torch, lerobot) happen here, in the worker only
-    from zk0.outputs.logs import setup_logging
 
     setup_logging("worker")
     server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)

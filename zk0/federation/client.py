@@ -28,6 +28,8 @@ from loguru import logger
 from torch.utils.data import DataLoader
 
 from zk0 import app_fingerprint
+from zk0.artifacts.disk import full_disk_in_one_sentence
+from zk0.artifacts.logs import add_file_sink, prints_to_log, setup_logging
 from zk0.common import machine
 from zk0.common.errors import Zk0Error
 from zk0.config import ConfigError, RunConfig, from_run_config
@@ -48,8 +50,6 @@ from zk0.learning.policy import (
 from zk0.learning.preflight import check_dataset, model_inputs
 from zk0.learning.record_privacy import PrivateTrainer
 from zk0.learning.training import LocalTrainer, evaluate
-from zk0.outputs.disk import full_disk_in_one_sentence
-from zk0.outputs.logs import add_file_sink, prints_to_log, setup_logging
 
 # What must outlive a one-message process, in the node's Context.state.
 OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"

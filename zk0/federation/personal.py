@@ -22,12 +22,12 @@ from pathlib import Path
 import torch
 from torch.utils.data import DataLoader
 
+from zk0.artifacts.run_folder import PERSONAL, save_checkpoint
 from zk0.config import RunConfig
 from zk0.data.loaders import DatasetSplit, train_loader
 from zk0.learning.closed_loop import ClosedLoop
 from zk0.learning.policy import PolicyBundle, rng_devices, set_trainable, snapshot
 from zk0.learning.training import LocalTrainer, evaluate
-from zk0.outputs.artifacts import PERSONAL, save_checkpoint
 from zk0.sim.tasks import SIM_SPECS
 
 

@@ -28,14 +28,10 @@ from lerobot.datasets.compute_stats import aggregate_stats
 from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
-from zk0.config import RunConfig
-from zk0.data.registry import DatasetEntry, Registry
-from zk0.federation import stopping
-from zk0.federation.stats import stats_from_record
-from zk0.federation.wire import CLIENT
-from zk0.learning.policy import PolicyBundle, set_trainable
-from zk0.learning.rates import success_text
-from zk0.outputs.artifacts import (
+from zk0.artifacts.hub import can_push, publish
+from zk0.artifacts.logs import say
+from zk0.artifacts.report import epsilon_spent, write_report
+from zk0.artifacts.run_folder import (
     ROUND_FILE,
     History,
     clients_trained,
@@ -44,10 +40,14 @@ from zk0.outputs.artifacts import (
     prune_videos,
     save_checkpoint,
 )
-from zk0.outputs.hub import can_push, publish
-from zk0.outputs.logs import say
-from zk0.outputs.report import epsilon_spent, write_report
-from zk0.outputs.tracking import Tracker
+from zk0.artifacts.tracking import Tracker
+from zk0.config import RunConfig
+from zk0.data.registry import DatasetEntry, Registry
+from zk0.federation import stopping
+from zk0.federation.stats import stats_from_record
+from zk0.federation.wire import CLIENT
+from zk0.learning.policy import PolicyBundle, set_trainable
+from zk0.learning.rates import success_text
 
 LATE_WARNING = 3  # rounds in a row a client misses the deadline before the server warns about it
 STRAGGLER = 0.5  # with a time budget, a client that took less than this share of the fastest one's steps

@@ -22,8 +22,8 @@ from pathlib import Path
 
 from loguru import logger
 
-from zk0.config import RunConfig
 from zk0.common.errors import Zk0Error
+from zk0.config import RunConfig
 from zk0.learning.policy import PolicyBundle
 
 PER_ROUND_BYTES = 2 * 2**20  # a round's JSON files, the rewritten charts and report, a closed-loop video

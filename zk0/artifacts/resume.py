@@ -22,9 +22,9 @@ from lerobot.datasets.io_utils import cast_stats_to_numpy
 from safetensors import safe_open
 from safetensors.torch import load_file
 
-from zk0.learning import adapters
-from zk0.outputs.artifacts import ROUND_FILE, SERVER_STATE_FILE, checkpoints
+from zk0.artifacts.run_folder import ROUND_FILE, SERVER_STATE_FILE, checkpoints
 from zk0.config import ConfigError
+from zk0.learning import adapters
 from zk0.learning.policy import PolicyBundle, get_trainable
 
 CLIENT_STATS = re.compile(r"client_(\d+)_.*")

@@ -2,7 +2,7 @@
 
 Layout under ``<output-dir>/<YYYY-MM-DD_HH-MM-SS>/``::
 
-    report.html                    the run on one page, opened from disk (zk0.outputs.report)
+    report.html                    the run on one page, opened from disk (zk0.artifacts.report)
     server/server.log, round_<N>.json, metrics_history.json, policy_loss.png, action_mse.png
     server/success_rate.png, lifted_rate.png, videos/round_<N>.mp4   with closed-loop evaluation (zk0.sim;
                                    the newest keep-checkpoints and the best round's)
@@ -33,8 +33,8 @@ from matplotlib.figure import Figure  # the object API: no pyplot state, no GUI 
 from matplotlib.ticker import MaxNLocator
 from safetensors.numpy import save_file
 
-from zk0.learning import adapters
 from zk0.common.errors import Zk0Error
+from zk0.learning import adapters
 from zk0.learning.policy import PolicyBundle
 from zk0.learning.rates import wilson
 

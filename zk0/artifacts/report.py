@@ -17,7 +17,7 @@ from pathlib import Path
 from jinja2 import Environment, StrictUndefined
 from markupsafe import Markup
 
-from zk0.outputs.artifacts import CHARTS, SIM_CHARTS, clients_trained, write_text
+from zk0.artifacts.run_folder import CHARTS, SIM_CHARTS, clients_trained, write_text
 from zk0.learning.rates import success_text
 
 REPORT_FILE = "report.html"

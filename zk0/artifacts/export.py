@@ -17,9 +17,9 @@ from pathlib import Path
 from lerobot.datasets.io_utils import cast_stats_to_numpy
 from lerobot.processor import PolicyProcessorPipeline
 
-from zk0.outputs.artifacts import PERSONAL, SERVER_STATE_FILE, checkpoints, client_dir
+from zk0.artifacts.resume import CLIENT_STATS
+from zk0.artifacts.run_folder import PERSONAL, SERVER_STATE_FILE, checkpoints, client_dir
 from zk0.common.errors import Zk0Error
-from zk0.outputs.resume import CLIENT_STATS
 
 # The processor steps whose statistics decide how observations and actions are scaled.
 NORMALISING_STEPS = (
