@@ -1,10 +1,13 @@
 # zk0: federated SmolVLA for SO-100/SO-101 arms. One image for simulation, SuperLink and SuperNodes.
-#   docker build -t zk0 .
-#   docker run --rm --gpus all --shm-size=8g -v "$(pwd)/outputs:/workspace/outputs" -v zk0-cache:/home/zk0/.cache \
-#       zk0 ./train.sh -m gpu-serial        (./train.sh --docker -m gpu-serial does this)
-#   docker run --rm -p 9093:9093 -v "$(pwd)/certificates:/workspace/certificates:ro" zk0 zk0 superlink
-# torch's wheels bring their own CUDA libraries; the CUDA base image supplies the rest of the runtime.
-FROM nvidia/cuda:13.0.1-cudnn-runtime-ubuntu24.04
+#   docker build -t zk0 .                     (podman: podman build --format docker -t zk0 .)
+#   ./train.sh --docker -m gpu-serial         (runs ./train.sh in the image: outputs/ mounted, cache in volume zk0-cache)
+#   docker compose -f deploy/compose.yaml up  (a SuperLink and two SuperNodes, TLS + authentication; see README)
+# BASE: the CUDA runtime by default, for `--gpus all`; torch's wheels bring their own CUDA libraries,
+# so any Debian or Ubuntu base with Python >= 3.12 builds the same image (debian:trixie: 3.13).
+# pip's own settings pass through as build arguments (PIP_INDEX_URL, PIP_EXTRA_INDEX_URL, PIP_CERT)
+# for builds behind a mirror or a TLS-inspecting proxy.
+ARG BASE=nvidia/cuda:13.0.1-cudnn-runtime-ubuntu24.04
+FROM ${BASE} AS system
 
 SHELL ["/bin/bash", "-o", "pipefail", "-c"]
 ENV DEBIAN_FRONTEND=noninteractive \
@@ -12,11 +15,14 @@ ENV DEBIAN_FRONTEND=noninteractive \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
-# Python 3.12 (Ubuntu 24.04's own), FFmpeg's libraries for torchcodec, tmux for --detached runs.
+# The base's own Python, FFmpeg's libraries for torchcodec, tmux for --detached runs, procps for
+# train.sh (it finds and stops its SuperLink with pgrep and ps), EGL/OSMesa for the simulator.
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
-        python3.12 python3.12-venv ffmpeg tmux ca-certificates libegl1 libgl1 libosmesa6 \
-    && rm -rf /var/lib/apt/lists/*
+        python3 python3-venv ffmpeg tmux procps ca-certificates libegl1 libgl1 libosmesa6 \
+    && rm -rf /var/lib/apt/lists/* \
+    && { python3 -c 'import sys; sys.exit(sys.version_info < (3, 12))' \
+        || { echo "zk0 needs Python >= 3.12; this BASE has $(python3 --version)." >&2; exit 1; }; }
 
 # Ubuntu 24.04 images already use uid 1000 (user ubuntu), so zk0 gets its own.
 # Writable for any uid too: ./train.sh --docker runs as the host user so outputs/ stays theirs.
@@ -27,16 +33,29 @@ RUN useradd --create-home --uid 10001 zk0 \
 USER 10001:10001
 WORKDIR /workspace
 
-# Dependencies first (cached while only the code changes), then the project itself, editable,
-# into the .venv that ./train.sh and ./test.sh look for; the stamp tells them it is up to date.
-# .venv links to /opt/zk0/venv, as scripts/setup.sh does: `flwr run` walks every file under the
-# project folder to pack the app but does not enter linked folders.
-COPY --chown=zk0:zk0 pyproject.toml README.md ./
-COPY --chown=zk0:zk0 zk0/__init__.py zk0/__init__.py
-RUN python3.12 -m venv /opt/zk0/venv \
+# The dependency list alone, so that the layer installing it (torch and the rest, minutes) is
+# rebuilt only when the list changes, not when another part of pyproject.toml does (a run-config
+# key, a test setting).
+FROM system AS requirements
+COPY pyproject.toml /tmp/pyproject.toml
+RUN python3 -c "import tomllib; print(*tomllib.load(open('/tmp/pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
+    > /tmp/requirements.txt
+
+# Dependencies first, then the project itself, editable, into the .venv that ./train.sh looks
+# for (a change to zk0's code rebuilds only the last layer); the stamp tells train.sh the install
+# is current. .venv links to /opt/zk0/venv, as scripts/setup.sh does: `flwr run` walks every
+# file under the project folder to pack the app, but not linked folders. (SHELL, with pipefail,
+# comes from the system stage.)
+FROM system
+ARG PIP_INDEX_URL
+ARG PIP_EXTRA_INDEX_URL
+ARG PIP_CERT
+COPY --from=requirements /tmp/requirements.txt /opt/zk0/requirements.txt
+RUN python3 -m venv /opt/zk0/venv \
     && ln -s /opt/zk0/venv .venv \
-    && .venv/bin/pip install -e ".[test]"
+    && .venv/bin/pip install -r /opt/zk0/requirements.txt
 COPY --chown=zk0:zk0 . .
+# hadolint ignore=DL4006
 RUN .venv/bin/pip install --no-deps -e . -e plugins/lerobot_env_zk0 \
     && cat pyproject.toml plugins/lerobot_env_zk0/pyproject.toml | sha256sum | cut -d' ' -f1 > .venv/.zk0-installed
 
@@ -44,7 +63,8 @@ ENV PATH=/opt/zk0/venv/bin:$PATH \
     FLWR_HOME=/workspace/.flwr \
     FLWR_DISABLE_RUNTIME_DEPENDENCY_INSTALLATION=1 \
     HF_HOME=/home/zk0/.cache/huggingface \
-    ZK0_CACHE=/home/zk0/.cache/zk0
+    ZK0_CACHE=/home/zk0/.cache/zk0 \
+    MUJOCO_GL=egl
 # Models, datasets and the offline assets persist across containers in this volume.
 VOLUME ["/home/zk0/.cache"]
 EXPOSE 9093

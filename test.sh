@@ -10,7 +10,7 @@ set -euo pipefail
 source "$(dirname "$0")/scripts/setup.sh"
 args=()
 for arg in "$@"; do
-    if [ "$arg" = --fast ]; then args+=(-m "not e2e and not deployment and not slow"); else args+=("$arg"); fi
+    if [ "$arg" = --fast ]; then args+=(-m "not e2e and not deployment and not slow and not container"); else args+=("$arg"); fi
 done
 # Short names: Ray's and the warm worker's Unix sockets live below TMPDIR (108 bytes a path).
 fresh_tmp="$(mktemp -d)"
@@ -19,6 +19,13 @@ trap 'rm -rf "$fresh_tmp" "$fresh_home"' EXIT
 export TMPDIR="$fresh_tmp" FLWR_HOME="$fresh_home"
 zk0_setup
 zk0_ensure_chromium
+# The whole suite runs the image: build it first (or find it current), outside pytest's time.
+# (Given arguments, the container test builds it itself when it is among the tests chosen.)
+if [ $# -eq 0 ] && zk0_ensure_podman; then
+    export CONTAINERS_CONF="$(zk0_containers_conf)"
+    zk0_log "Building the zk0 image with podman (first time on a machine: about 20 min; then seconds)..."
+    zk0_ensure_image >"$fresh_tmp/image-build.log" 2>&1 || zk0_log "Building the image failed; the container test says why."
+fi
 cd "$ZK0_ROOT"
 export HF_HUB_OFFLINE=1
 python -m pytest -n auto --dist worksteal "${args[@]}"

@@ -85,12 +85,11 @@ launch() {
     "$@"
 }
 
-if [ "$detached" = 1 ]; then
+if [ "$detached" = 1 ] && [ "$docker" = 0 ]; then
     command -v tmux >/dev/null || [ "$print_only" = 1 ] || { echo "train.sh: --detached needs tmux; install it (e.g. apt-get install tmux)." >&2; exit 2; }
     session="zk0-$(date +%Y%m%d-%H%M%S)"
     mkdir -p "$ROOT/outputs"
     again=("$ROOT/train.sh" "${inner[@]}")
-    [ "$docker" = 1 ] && again+=(--docker)
     launch tmux new-session -d -s "$session" "$(printf '%q ' "${again[@]}") 2>&1 | tee $ROOT/outputs/$session.log"
     echo "Started tmux session $session."
     echo "  attach:  tmux attach -t $session   (detach again with Ctrl-b d)"
@@ -99,18 +98,62 @@ if [ "$detached" = 1 ]; then
     exit 0
 fi
 
+# Docker when its daemon answers, else podman (ZK0_ENGINE chooses); nothing when neither is here.
+container_engine() {
+    if [ -n "${ZK0_ENGINE:-}" ]; then echo "$ZK0_ENGINE"; return 0; fi
+    if command -v docker >/dev/null && docker info >/dev/null 2>&1; then echo docker; return 0; fi
+    if command -v podman >/dev/null; then echo podman; return 0; fi
+    command -v docker >/dev/null && { echo docker; return 0; } # installed, daemon not running: its own message says so
+    return 1
+}
+
 if [ "$docker" = 1 ]; then
-    run=(docker run --rm --shm-size=8g --user "$(id -u):$(id -g)"
+    engine="$(container_engine)" || {
+        [ "$print_only" = 1 ] && engine=docker || {
+            echo "train.sh: --docker needs Docker or podman; install one (e.g. apt-get install podman) or run without --docker." >&2
+            exit 2
+        }
+    }
+    # The image's outputs/ is the host's: a run folder to resume is named by its place under it.
+    for ((i = 0; i < ${#inner[@]}; i++)); do
+        [ "${inner[$i]}" = --resume ] || continue
+        resume="$(cd "${inner[$((i + 1))]}" && pwd)"
+        case "$resume" in
+        "$ROOT/outputs/"*) inner[$((i + 1))]="outputs/${resume#"$ROOT/outputs/"}" ;;
+        *) echo "train.sh: --docker resumes runs under $ROOT/outputs/ only (that folder is what the container sees); got '$resume'." >&2; exit 2 ;;
+        esac
+    done
+    run=("$engine" run --rm --shm-size=8g --user "$(id -u):$(id -g)"
         -v "$ROOT/outputs:/workspace/outputs" -v zk0-cache:/home/zk0/.cache)
-    [ "$mode" = cpu ] || run+=(--gpus all)
+    # Rootless podman maps the container's uids into the user's own range; keep-id makes the
+    # host user the same uid inside, so outputs/ stays theirs.
+    [ "$engine" = podman ] && [ "$(id -u)" != 0 ] && run+=(--userns=keep-id)
+    if [ "$mode" != cpu ]; then
+        if [ "$engine" = podman ]; then run+=(--device nvidia.com/gpu=all); else run+=(--gpus all); fi
+    fi
     [ -n "${HF_TOKEN:-}" ] && run+=(-e HF_TOKEN)
     [ -n "${WANDB_API_KEY:-}" ] && run+=(-e WANDB_API_KEY)
-    if [ "$print_only" = 0 ]; then
-        command -v docker >/dev/null || { echo "train.sh: --docker needs Docker; install it or run without --docker." >&2; exit 2; }
-        mkdir -p "$ROOT/outputs"
-        docker image inspect zk0 >/dev/null 2>&1 || docker build -t zk0 "$ROOT"
+    if [ "$detached" = 1 ]; then
+        # A detached container needs no tmux on the host: the engine keeps it and its log.
+        session="zk0-$(date +%Y%m%d-%H%M%S)"
+        run=("${run[@]:0:2}" -d --name "$session" "${run[@]:2}")
     fi
-    launch "${run[@]}" zk0 ./train.sh "${inner[@]}"
+    if [ "$print_only" = 0 ]; then
+        mkdir -p "$ROOT/outputs"
+        if ! "$engine" image inspect zk0 >/dev/null 2>&1; then
+            build=("$engine" build -t zk0)
+            [ "$engine" = podman ] && build+=(--format docker) # keeps the Dockerfile's SHELL
+            "${build[@]}" "$ROOT" || { echo "train.sh: building the zk0 image with $engine failed; see its message above." >&2; exit 1; }
+        fi
+    fi
+    command=("${run[@]}" zk0 ./train.sh "${inner[@]}")
+    [ "$print_only" = 0 ] || launch "${command[@]}"
+    [ "$detached" = 1 ] || exec "${command[@]}"
+    "${command[@]}" >/dev/null || exit 1 # it prints the container's id
+    echo "Started container $session."
+    echo "  log:     $engine logs -f $session   (all of it is kept as outputs/<run>/console.log)"
+    echo "  stop:    $engine stop $session   (stops the run; what it wrote stays in outputs/)"
+    exit 0
 fi
 
 source "$(dirname "$0")/scripts/setup.sh"

@@ -85,6 +85,52 @@ zk0_ensure_chromium() {
     zk0_log "Chromium not found and not installable here; the report's browser test is skipped."
 }
 
+# The container test (tests/test_container.py) builds the image with podman and debootstrap; only
+# ./test.sh asks for them (in CI their absence where this could install them fails that test).
+zk0_ensure_podman() {
+    command -v podman >/dev/null 2>&1 && command -v debootstrap >/dev/null 2>&1 && return 0
+    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+        zk0_log "Installing podman and debootstrap (the container test builds and runs the zk0 image)..."
+        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq podman runc debootstrap; } >/dev/null 2>&1; then
+            return 0
+        fi
+    fi
+    zk0_log "podman or debootstrap not found and not installable here; the container test is skipped."
+    return 1
+}
+
+# Print the path of a containers.conf for podman on this machine (CONTAINERS_CONF): runc, since
+# crun refuses cgroups in hybrid mode, and no default rlimits, which some sandboxes refuse.
+zk0_containers_conf() {
+    local conf="${ZK0_CACHE:-${XDG_CACHE_HOME:-$HOME/.cache}/zk0}/containers.conf"
+    mkdir -p "$(dirname "$conf")"
+    printf '[containers]\ndefault_ulimits = []\n\n[engine]\nruntime = "runc"\n' >"$conf"
+    echo "$conf"
+}
+
+# Build the zk0 image with podman from a Debian base made here (no registry needed for the
+# base; pip reaches PyPI, with this machine's CA bundle where pip's `cert` setting names one).
+# Both stay in podman's store: the base is made once per machine, and after a change to zk0's
+# code only the image's last layer is rebuilt.
+zk0_ensure_image() {
+    local base=localhost/zk0-base-trixie dir cert build
+    if ! podman image exists "$base"; then
+        zk0_log "Making a Debian trixie base image with debootstrap (about 3 min, once per machine)..."
+        dir="$(mktemp -d)"
+        debootstrap --variant=minbase trixie "$dir" >/dev/null &&
+            tar -C "$dir" -c . | podman import - "$base" >/dev/null || {
+            rm -rf "$dir"
+            zk0_log "Making the base image failed; see debootstrap's or podman's message above."
+            return 1
+        }
+        rm -rf "$dir"
+    fi
+    build=(podman build --format docker --network host --build-arg "BASE=$base" -t zk0)
+    cert="${PIP_CERT:-$("$ZK0_VENV/bin/python" -m pip config list 2>/dev/null | sed -n "s/^[^=]*\.cert='\(.*\)'\$/\1/p" | head -n 1)}"
+    [ -z "$cert" ] || build+=(-v "$cert:/etc/zk0-pip-cert.pem:ro" --build-arg PIP_CERT=/etc/zk0-pip-cert.pem)
+    "${build[@]}" "$ZK0_ROOT"
+}
+
 # zk0's simulator as a lerobot env plugin (lerobot imports every lerobot_env_* distribution).
 ZK0_ENV_PLUGIN=plugins/lerobot_env_zk0
 

@@ -19,6 +19,7 @@ import re
 import shlex
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -32,7 +33,9 @@ BIN = Path(sys.executable).parent
 # Exercised elsewhere, or not runnable here; each with the reason.
 ELSEWHERE = {
     "flwr supernode": "registration and listing run in tests/test_deployment.py",
-    "docker build": "no Docker engine here; the Dockerfile is linted by tests/test_scripts.py",
+    "docker build": "built for real with podman by tests/test_container.py (zk0_ensure_image)",
+    "docker compose": "the compose federation runs for real, step by step, in tests/test_container.py",
+    "mkdir ": "makes the folders the compose federation mounts",
     "./test.sh": "the test command itself",
     "source scripts/setup.sh": "what ./train.sh and ./test.sh run first",
     "cd ": "moves into the clone",
@@ -174,10 +177,18 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
     if tokens[0] == "zk0":
         return zk0(*tokens[1:], cwd=workspace)
     if tokens[0] == "./train.sh":
-        if "--resume" in tokens:  # the example run folder, as an interrupted run leaves it
-            (workspace / tokens[tokens.index("--resume") + 1]).mkdir(parents=True, exist_ok=True)
+        # From the project folder for --docker, whose container sees the project's outputs/ only.
+        cwd = PROJECT_ROOT if "--docker" in tokens else workspace
         command = [str(PROJECT_ROOT / "train.sh"), *tokens[1:], "--print"]
-        return subprocess.run(command, cwd=workspace, capture_output=True, text=True, timeout=300, check=False)
+        if "--resume" not in tokens:
+            return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300, check=False)
+        (cwd / "outputs").mkdir(exist_ok=True)
+        run = Path(tempfile.mkdtemp(dir=cwd / "outputs"))
+        command[command.index("--resume") + 1] = str(run)  # the example run folder, as an interrupted run leaves it
+        try:
+            return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=300, check=False)
+        finally:
+            run.rmdir()
     if tokens[:2] == ["flwr", "run"]:
         config = tokens[tokens.index("--run-config") + 1] if "--run-config" in tokens else ""
         if "registry=" in config:  # its owners' datasets, made by the `zk0 assets` the docs run first

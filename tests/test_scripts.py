@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -35,16 +36,70 @@ def test_unknown_flag_fails_in_one_sentence():
     assert done.stderr.strip() == "train.sh: unknown option '--turbo'; see ./train.sh --help."
 
 
+def train_in(engine: str, *args: str) -> list[str]:
+    """The command ``./train.sh --docker --print`` shows with ``engine`` chosen."""
+    done = subprocess.run(
+        [TRAIN, "--docker", "--print", *args], env={**os.environ, "ZK0_ENGINE": engine},
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
 def test_docker_runs_the_same_command_in_the_image_with_outputs_mounted():
-    done = train("--docker", "--print", "-m", "gpu-serial", "-r", "local-steps=3")
-    command = done.stdout.split()
+    command = train_in("docker", "-m", "gpu-serial", "-r", "local-steps=3")
     assert command[:2] == ["docker", "run"] and "--gpus" in command
     mount = command[command.index("-v") + 1]
     assert mount == f"{PROJECT_ROOT}/outputs:/workspace/outputs"
+    assert command[command.index("--user") + 1] == f"{os.getuid()}:{os.getgid()}", "outputs/ stays the host user's"
     assert command[-6:] == ["zk0", "./train.sh", "-m", "gpu-serial", "-r", "local-steps=3"]
     dockerfile = (PROJECT_ROOT / "Dockerfile").read_text()
     assert "WORKDIR /workspace" in dockerfile and 'VOLUME ["/home/zk0/.cache"]' in dockerfile
-    assert "--gpus" not in train("--docker", "--print").stdout, "a CPU run asks for no GPU"
+    assert "--gpus" not in train_in("docker"), "a CPU run asks for no GPU"
+
+
+def test_podman_runs_the_same_command_with_its_own_gpu_flag():
+    command = train_in("podman", "-m", "gpu")
+    assert command[:2] == ["podman", "run"] and "--gpus" not in command
+    assert command[command.index("--device") + 1] == "nvidia.com/gpu=all", "podman passes GPUs through CDI"
+
+
+def test_docker_resumes_a_run_by_its_place_under_outputs(tmp_path):
+    run = PROJECT_ROOT / "outputs" / f"resume-test-{os.getpid()}"
+    run.mkdir(parents=True)
+    try:
+        command = train_in("docker", "--resume", str(run))
+        assert command[-3:] == ["./train.sh", "--resume", f"outputs/{run.name}"], "the container's path, not the host's"
+        done = train("--docker", "--print", "--resume", str(tmp_path))
+        assert done.returncode == 2 and done.stderr.strip() == (
+            f"train.sh: --docker resumes runs under {PROJECT_ROOT}/outputs/ only (that folder is what the "
+            f"container sees); got '{tmp_path}'."
+        )
+    finally:
+        run.rmdir()
+
+
+def test_docker_detached_is_a_named_container_with_its_log_and_stop_commands():
+    command = train_in("podman", "--detached", "-r", "num-server-rounds=2")
+    assert command[:4] == ["podman", "run", "-d", "--name"] and command[4].startswith("zk0-")
+    assert command[-3:] == ["./train.sh", "-r", "num-server-rounds=2"]
+
+
+def test_a_missing_engine_is_one_sentence(tmp_path):
+    """With neither Docker nor podman on PATH, --docker says what to install, before anything runs."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    for tool in ("bash", "dirname", "date", "id", "mkdir", "cat"):
+        (bin_dir / tool).symlink_to(shutil.which(tool))
+    done = subprocess.run(
+        [str(PROJECT_ROOT / "train.sh"), "--docker"],
+        env={"PATH": str(bin_dir), "HOME": str(tmp_path)}, capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip() == (
+        "train.sh: --docker needs Docker or podman; install one (e.g. apt-get install podman) or run without --docker."
+    )
+    assert not (tmp_path / "outputs").exists()
 
 
 def test_detached_runs_in_a_named_tmux_session():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from zk0.bench import (
+    container,
     deployment,
     exchange,
     gpu,
@@ -44,6 +45,7 @@ BENCHMARKS = {
     "soak": soak,
     "privacy": privacy,
     "secagg": secagg,
+    "container": container,
 }
 
 
