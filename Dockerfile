@@ -15,14 +15,18 @@ ENV DEBIAN_FRONTEND=noninteractive \
     PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1
 
-# The base's own Python, FFmpeg's libraries for torchcodec, tmux for --detached runs, procps for
-# train.sh (it finds and stops its SuperLink with pgrep and ps), EGL/OSMesa for the simulator.
+# The base's own Python and its shared library (torchcodec links to it), FFmpeg's libraries for
+# torchcodec, tmux for --detached runs, procps for train.sh (it finds and stops its SuperLink
+# with pgrep and ps), EGL/OSMesa for the simulator.
 RUN apt-get update \
     && apt-get install -y --no-install-recommends \
         python3 python3-venv ffmpeg tmux procps ca-certificates libegl1 libgl1 libosmesa6 \
-    && rm -rf /var/lib/apt/lists/* \
     && { python3 -c 'import sys; sys.exit(sys.version_info < (3, 12))' \
-        || { echo "zk0 needs Python >= 3.12; this BASE has $(python3 --version)." >&2; exit 1; }; }
+        || { echo "zk0 needs Python >= 3.12; this BASE has $(python3 --version)." >&2; exit 1; }; } \
+    && version="$(python3 -c 'import sys; print(*sys.version_info[:2], sep=".")')" \
+    && apt-get install -y --no-install-recommends \
+        "$(apt-cache search --names-only "^libpython${version}(t64)?\$" | cut -d' ' -f1 | head -n 1)" \
+    && rm -rf /var/lib/apt/lists/*
 
 # Ubuntu 24.04 images already use uid 1000 (user ubuntu), so zk0 gets its own.
 # Writable for any uid too: ./train.sh --docker runs as the host user so outputs/ stays theirs.

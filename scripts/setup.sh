@@ -113,7 +113,7 @@ zk0_containers_conf() {
 # Both stay in podman's store: the base is made once per machine, and after a change to zk0's
 # code only the image's last layer is rebuilt.
 zk0_ensure_image() {
-    local base=localhost/zk0-base-trixie dir cert build
+    local base=localhost/zk0-base-trixie dir
     if ! podman image exists "$base"; then
         zk0_log "Making a Debian trixie base image with debootstrap (about 3 min, once per machine)..."
         dir="$(mktemp -d)"
@@ -125,10 +125,15 @@ zk0_ensure_image() {
         }
         rm -rf "$dir"
     fi
-    build=(podman build --format docker --network host --build-arg "BASE=$base" -t zk0)
+    zk0_build_image "$ZK0_ROOT" zk0
+}
+
+# podman build of the project folder $1 as image $2, on the base zk0_ensure_image makes.
+zk0_build_image() {
+    local cert build=(podman build --format docker --network host --build-arg BASE=localhost/zk0-base-trixie -t "$2")
     cert="${PIP_CERT:-$("$ZK0_VENV/bin/python" -m pip config list 2>/dev/null | sed -n "s/^[^=]*\.cert='\(.*\)'\$/\1/p" | head -n 1)}"
     [ -z "$cert" ] || build+=(-v "$cert:/etc/zk0-pip-cert.pem:ro" --build-arg PIP_CERT=/etc/zk0-pip-cert.pem)
-    "${build[@]}" "$ZK0_ROOT"
+    "${build[@]}" "$1"
 }
 
 # zk0's simulator as a lerobot env plugin (lerobot imports every lerobot_env_* distribution).

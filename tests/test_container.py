@@ -73,10 +73,12 @@ def test_the_quick_run_in_the_container_writes_the_hosts_outputs_as_the_host_use
 
 
 def test_the_image_has_what_train_sh_needs_and_no_test_tools(image):
-    """procps (train.sh stops its SuperLink with pgrep and ps), the base's Python >= 3.12, zk0's
-    simulator plugin registered with lerobot, and no pytest (the test extra stays out of the image)."""
+    """procps (train.sh stops its SuperLink with pgrep and ps), the base's Python >= 3.12, torchcodec
+    loading with the base's FFmpeg, zk0's simulator plugin registered with lerobot, and no pytest
+    (the test extra stays out of the image)."""
     script = (
         "command -v pgrep ps tmux >/dev/null && python -c 'import sys; assert sys.version_info >= (3, 12)' "
+        "&& python -c 'import torchcodec.decoders' "
         "&& python -c 'import importlib.metadata as m; m.distribution(\"lerobot_env_zk0\")' "
         "&& ! python -c 'import pytest' 2>/dev/null && echo ok"
     )
