@@ -8,7 +8,8 @@ from flwr.app import ArrayRecord, ConfigRecord, Error, Message, MessageType, Met
 from loguru import logger
 
 from zk0.common.errors import REFUSED
-from zk0.federation.aggregation import RunCannotTrain, ValidatingStrategy, array_signature, update_problem
+from zk0.federation.aggregation import RunCannotTrain, ValidatingStrategy
+from zk0.federation.updates import array_signature, update_problem
 from zk0.federation.server_optimisers import make_strategy
 from zk0.federation.wire import MANIFEST, PACKED, encode
 

@@ -54,7 +54,8 @@ def test_fedavg_averages_decoded_values(flower_task):
     from flwr.app import ArrayRecord
 
     from tests.test_aggregation import Recorder, reply
-    from zk0.federation.aggregation import ValidatingStrategy, array_signature
+    from zk0.federation.aggregation import ValidatingStrategy
+    from zk0.federation.updates import array_signature
     from zk0.federation.server_optimisers import make_strategy
 
     template = {"a": torch.zeros(2, 3), "b": torch.zeros(4)}

@@ -34,7 +34,8 @@ from zk0.data.loaders import DataError, DatasetSplit, eval_loader, open_evaluati
 from zk0.data.registry import Registry, load_registry
 from zk0.deployment.grid import PromptGrid
 from zk0.federation import stopping
-from zk0.federation.aggregation import ValidatingStrategy, array_signature
+from zk0.federation.aggregation import ValidatingStrategy
+from zk0.federation.updates import array_signature
 from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
 from zk0.federation.robust import make_rule
 from zk0.federation.round_artifacts import RoundArtifacts
