@@ -316,3 +316,26 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     assert done.returncode == 0, done.stderr[-3000:]
     info = json.loads((tmp_path / "lerobot-eval" / "eval_info.json").read_text())
     assert info["overall"]["pc_success"] == 0.0 and info["overall"]["n_episodes"] == 1
+
+
+class HighGrasp(PickExpert):
+    """The expert, closing its jaws 2.5 cm above the cube's centre instead of on it: an
+    off-centre grasp, as a trained policy's often is (both pads on the cube's upper part)."""
+
+    def reset(self) -> None:
+        super().reset()
+        high = np.array([0.0, 0.0, 0.025])
+        self.plan = [(goal + high if leg else goal, grip, time) for leg, (goal, grip, time) in enumerate(self.plan)]
+
+
+def test_the_graded_outcomes_are_a_funnel_over_seeded_episodes(env):
+    """Success implies lifted, lifted grasped, grasped reached, on every seeded episode of the expert
+    and of one that grasps off-centre (whose grasp point never comes within 2 cm of the centre)."""
+    outcomes = []
+    for expert in (PickExpert(env), HighGrasp(env)):
+        for index in range(4):
+            _, success = demonstrate(env, expert, episode_seed(3, "funnel", index))
+            outcomes.append((success, dict(env.outcome)))
+    for success, outcome in outcomes:
+        assert outcome["reached"] >= outcome["grasped"] >= outcome["lifted"] >= success, outcomes
+    assert any(outcome["grasped"] for _, outcome in outcomes[4:]), f"the off-centre expert grasps: {outcomes[4:]}"

@@ -33,7 +33,7 @@ COLOURS = {
 }
 # The arm's pose at every reset (lerobot units): raised over the table, gripper half open.
 HOME = np.array([0.0, -40.0, 20.0, 75.0, 0.0, 30.0])
-REACHED_M = 0.02  # grasp point this close to the cube's centre
+REACHED_M = 0.02  # grasp point this close to the cube's centre (or both pads on the cube) reaches it
 LIFTED_M = 0.03  # cube this far above the table, held by both pads
 HOLD_STEPS = 10  # lifted for this many steps in a row ends the episode as a success
 APART_M = 0.06  # the cubes' centres at least this far apart at every reset
@@ -194,11 +194,15 @@ class PickCubeEnv(gym.Env):
         raise RuntimeError(f"No {count} cube positions {APART_M} m apart in the region {self.task.region}.")
 
     def _grade(self) -> bool:
-        """Update the episode's graded outcome; whether the cube is lifted in the jaws right now."""
+        """Update the episode's graded outcome; whether the cube is lifted in the jaws right now.
+
+        The grades are a funnel: each implies the one before it. A grasp reaches the cube even when
+        the grasp point is off its centre (both pads on the cube's upper half, say), and a lift
+        (success's condition) is a grasp."""
         cube = self.cube_pos()
-        if np.linalg.norm(self.data.site("grasp").xpos - cube) < REACHED_M:
-            self.outcome["reached"] = True
         held = self._pads_touching()
+        if held or np.linalg.norm(self.data.site("grasp").xpos - cube) < REACHED_M:
+            self.outcome["reached"] = True
         self.outcome["grasped"] |= held
         lifted = held and cube[2] - CUBE_HALF > LIFTED_M
         self.outcome["lifted"] |= lifted
