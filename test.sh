@@ -23,7 +23,7 @@ zk0_ensure_chromium
 # (Given arguments, the container test builds it itself when it is among the tests chosen.)
 if [ $# -eq 0 ] && zk0_ensure_podman; then
     export CONTAINERS_CONF="$(zk0_containers_conf)"
-    zk0_log "Building the zk0 image with podman (first time on a machine: about 20 min; then seconds)..."
+    zk0_log "Building the zk0 image with podman (first time on a machine: minutes, most of it pip fetching torch; then seconds)..."
     zk0_ensure_image >"$fresh_tmp/image-build.log" 2>&1 || zk0_log "Building the image failed; the container test says why."
 fi
 cd "$ZK0_ROOT"

@@ -123,7 +123,8 @@ if [ "$docker" = 1 ]; then
         *) echo "train.sh: --docker resumes runs under $ROOT/outputs/ only (that folder is what the container sees); got '$resume'." >&2; exit 2 ;;
         esac
     done
-    run=("$engine" run --rm --shm-size=8g --user "$(id -u):$(id -g)"
+    # ZK0_HOST_OUTPUTS: where the container's outputs/ is on the host, for the paths it prints.
+    run=("$engine" run --rm --shm-size=8g --user "$(id -u):$(id -g)" -e "ZK0_HOST_OUTPUTS=$ROOT/outputs"
         -v "$ROOT/outputs:/workspace/outputs" -v zk0-cache:/home/zk0/.cache)
     # Rootless podman maps the container's uids into the user's own range; keep-id makes the
     # host user the same uid inside, so outputs/ stays theirs.
@@ -131,6 +132,8 @@ if [ "$docker" = 1 ]; then
     if [ "$mode" != cpu ]; then
         if [ "$engine" = podman ]; then run+=(--device nvidia.com/gpu=all); else run+=(--gpus all); fi
     fi
+    # A thread limit the user set reaches the run (two runs sharing a machine must not oversubscribe it).
+    [ -n "${OMP_NUM_THREADS:-}" ] && run+=(-e OMP_NUM_THREADS)
     [ -n "${HF_TOKEN:-}" ] && run+=(-e HF_TOKEN)
     [ -n "${WANDB_API_KEY:-}" ] && run+=(-e WANDB_API_KEY)
     if [ "$detached" = 1 ]; then
@@ -227,18 +230,27 @@ interrupted() {
     fi
     last="$(ls -d "$run_dir"/models/checkpoint_round_*/model.safetensors 2>/dev/null | sort -V | tail -n 1 || true)"
     written="$(ls "$run_dir"/server/round_*.json 2>/dev/null | sed 's/.*round_\([0-9]*\)\.json/\1/' | sort -n | tail -n 1 || true)"
-    zk0_log "Stopped in round $((${written:-0} + 1)) (rounds up to ${written:-0} are written). Everything written so far is in $run_dir"
+    zk0_log "Stopped in round $((${written:-0} + 1)) (rounds up to ${written:-0} are written). Everything written so far is in $(on_host "$run_dir")"
     if [ -z "$last" ]; then
         zk0_log "No checkpoint was complete yet, so there is nothing to resume; start again with ./train.sh."
         exit 130
     fi
-    zk0_log "Last complete checkpoint: $(dirname "$last"). Continue the run with:"
+    zk0_log "Last complete checkpoint: $(on_host "$(dirname "$last")"). Continue the run with:"
     for ((i = 0; i < ${#inner[@]}; i++)); do
         if [ "${inner[$i]}" = --resume ]; then i=$((i + 1)); else again+=("${inner[$i]}"); fi
     done
+    [ -z "${ZK0_HOST_OUTPUTS:-}" ] || again+=(--docker)
     [ ${#again[@]} -eq 0 ] || shown="$(printf ' %q' "${again[@]}")"
-    printf '  ./train.sh%s --resume %q\n' "$shown" "$run_dir" >&2
+    printf '  ./train.sh%s --resume %q\n' "$shown" "$(on_host "$run_dir")" >&2
     exit 130
+}
+
+# A path as the user finds it: in a container started by ./train.sh --docker, the host's.
+on_host() {
+    case "${ZK0_HOST_OUTPUTS:-}:$1" in
+    ?*:"$ZK0_ROOT/outputs/"*) echo "$ZK0_HOST_OUTPUTS/${1#"$ZK0_ROOT/outputs/"}" ;;
+    *) echo "$1" ;;
+    esac
 }
 
 # The run's folder, as the ServerApp names it in the log ("Writing to ...", "Resuming ... after").
@@ -286,4 +298,4 @@ if grep -q "Exit Code: [1-9]" "$log"; then
     exit 1
 fi
 keep_log "$outputs"
-zk0_log "Outputs: ${outputs:-none written; what flwr run printed is in $log}"
+if [ -n "$outputs" ]; then zk0_log "Outputs: $(on_host "$outputs")"; else zk0_log "Outputs: none written; what flwr run printed is in $log"; fi

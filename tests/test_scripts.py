@@ -52,6 +52,7 @@ def test_docker_runs_the_same_command_in_the_image_with_outputs_mounted():
     mount = command[command.index("-v") + 1]
     assert mount == f"{PROJECT_ROOT}/outputs:/workspace/outputs"
     assert command[command.index("--user") + 1] == f"{os.getuid()}:{os.getgid()}", "outputs/ stays the host user's"
+    assert "OMP_NUM_THREADS" in command, "the thread limit set here (tests/conftest.py) reaches the container"
     assert command[-6:] == ["zk0", "./train.sh", "-m", "gpu-serial", "-r", "local-steps=3"]
     dockerfile = (PROJECT_ROOT / "Dockerfile").read_text()
     assert "WORKDIR /workspace" in dockerfile and 'VOLUME ["/home/zk0/.cache"]' in dockerfile

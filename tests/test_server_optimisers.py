@@ -12,7 +12,8 @@ from tests.test_aggregation import Recorder, TwoNodes, arrays, reply
 from zk0.artifacts.resume import find_resume_point
 from zk0.artifacts.run_folder import save_checkpoint
 from zk0.config import DEFAULT_SERVER_LR, SERVER_OPTIMISERS, ConfigError, from_run_config
-from zk0.federation.aggregation import ValidatingStrategy, array_signature
+from zk0.federation.aggregation import ValidatingStrategy
+from zk0.federation.updates import array_signature
 from zk0.federation.server_optimisers import STATE, make_strategy, restore_state
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
