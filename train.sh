@@ -108,6 +108,10 @@ container_engine() {
 }
 
 if [ "$docker" = 1 ]; then
+    case "${ZK0_ENGINE:-docker}" in
+    docker | podman) ;;
+    *) echo "train.sh: ZK0_ENGINE is '$ZK0_ENGINE'; expected docker or podman." >&2; exit 2 ;;
+    esac
     engine="$(container_engine)" || {
         [ "$print_only" = 1 ] && engine=docker || {
             echo "train.sh: --docker needs Docker or podman; install one (e.g. apt-get install podman) or run without --docker." >&2

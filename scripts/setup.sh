@@ -43,18 +43,23 @@ zk0_find_python() {
     return 1
 }
 
+# As root with apt-get: log why ($1), install the Debian packages named after it, quietly.
+# Fails (for the caller's one sentence) where it cannot.
+zk0_apt_install() {
+    local why="$1"
+    shift
+    [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 || return 1
+    zk0_log "$why"
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@"; } >/dev/null 2>&1
+}
+
 zk0_ensure_ffmpeg() {
     # grep reads all of ldconfig's output: with -q it stops early, ldconfig dies of SIGPIPE, and
     # under pipefail that read as "not installed" now and then (an apt-get run for nothing).
     if ldconfig -p 2>/dev/null | grep 'libavutil\.so' >/dev/null; then
         return 0
     fi
-    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-        zk0_log "Installing FFmpeg (torchcodec decodes video with it)..."
-        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq ffmpeg; } >/dev/null 2>&1; then
-            return 0
-        fi
-    fi
+    zk0_apt_install "Installing FFmpeg (torchcodec decodes video with it)..." ffmpeg && return 0
     zk0_log "FFmpeg libraries not found and not installable here; lerobot will decode video with PyAV (install 'ffmpeg' for torchcodec)."
 }
 
@@ -63,12 +68,7 @@ zk0_ensure_gl() {
     if ldconfig -p 2>/dev/null | grep -E 'libEGL\.so|libOSMesa\.so' >/dev/null; then
         return 0
     fi
-    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-        zk0_log "Installing EGL and OSMesa (MuJoCo renders the simulator's cameras with them)..."
-        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libegl1 libgl1 libosmesa6; } >/dev/null 2>&1; then
-            return 0
-        fi
-    fi
+    zk0_apt_install "Installing EGL and OSMesa (MuJoCo renders the simulator's cameras with them)..." libegl1 libgl1 libosmesa6 && return 0
     zk0_log "No EGL or OSMesa library found and not installable here; the simulator (zk0.sim) cannot render until 'libegl1' or 'libosmesa6' is installed."
 }
 
@@ -76,12 +76,7 @@ zk0_ensure_gl() {
 # only ./test.sh asks for it (in CI its absence where this could install it fails that test).
 zk0_ensure_chromium() {
     command -v chromium >/dev/null 2>&1 && return 0
-    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-        zk0_log "Installing Chromium (the report's browser test renders report.html in it)..."
-        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium; } >/dev/null 2>&1; then
-            return 0
-        fi
-    fi
+    zk0_apt_install "Installing Chromium (the report's browser test renders report.html in it)..." chromium && return 0
     zk0_log "Chromium not found and not installable here; the report's browser test is skipped."
 }
 
@@ -89,12 +84,7 @@ zk0_ensure_chromium() {
 # ./test.sh asks for them (in CI their absence where this could install them fails that test).
 zk0_ensure_podman() {
     command -v podman >/dev/null 2>&1 && command -v debootstrap >/dev/null 2>&1 && return 0
-    if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-        zk0_log "Installing podman and debootstrap (the container test builds and runs the zk0 image)..."
-        if { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq podman runc debootstrap; } >/dev/null 2>&1; then
-            return 0
-        fi
-    fi
+    zk0_apt_install "Installing podman and debootstrap (the container test builds and runs the zk0 image)..." podman runc debootstrap && return 0
     zk0_log "podman or debootstrap not found and not installable here; the container test is skipped."
     return 1
 }
@@ -115,7 +105,7 @@ zk0_containers_conf() {
 zk0_ensure_image() {
     local base=localhost/zk0-base-trixie dir
     if ! podman image exists "$base"; then
-        zk0_log "Making a Debian trixie base image with debootstrap (about 3 min, once per machine)..."
+        zk0_log "Making a Debian trixie base image with debootstrap (once per machine)..."
         dir="$(mktemp -d)"
         debootstrap --variant=minbase trixie "$dir" >/dev/null &&
             tar -C "$dir" -c . | podman import - "$base" >/dev/null || {

@@ -12,7 +12,6 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
@@ -21,6 +20,7 @@ import pytest
 
 from tests.conftest import require_tool
 from zk0.data.registry import PROJECT_ROOT
+from zk0.deployment.loopback import tool
 
 pytestmark = pytest.mark.container
 
@@ -91,7 +91,7 @@ def test_the_image_has_what_train_sh_needs_and_no_test_tools(image):
 
 def compose(root: Path, env: dict[str, str], *args: str, timeout: float = 600) -> subprocess.CompletedProcess:
     """``podman-compose <args>`` on the compose file in ``root``, as the README runs it."""
-    command = [str(Path(sys.executable).with_name("podman-compose")), *args]
+    command = [tool("podman-compose"), *args]
     return subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=timeout, check=False)
 
 
@@ -105,7 +105,7 @@ def test_a_tls_federation_in_containers_runs_two_rounds_with_each_partys_files_i
     for name in ("compose.yaml", "flower.toml"):
         shutil.copy(PROJECT_ROOT / "deploy" / name, root)
     certs = subprocess.run(
-        [str(Path(sys.executable).with_name("zk0")), "certs", "--host", "superlink", "--supernode", "alice",
+        [tool("zk0"), "certs", "--host", "superlink", "--supernode", "alice",
          "--supernode", "bob"], cwd=root, capture_output=True, text=True, timeout=120, check=False,
     )  # fmt: skip
     assert certs.returncode == 0, certs.stderr

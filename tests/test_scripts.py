@@ -80,6 +80,14 @@ def test_docker_resumes_a_run_by_its_place_under_outputs(tmp_path):
         run.rmdir()
 
 
+def test_an_unknown_engine_is_one_sentence():
+    done = subprocess.run(
+        [TRAIN, "--docker", "--print"], env={**os.environ, "ZK0_ENGINE": "lxc"},
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 2 and done.stderr.strip() == "train.sh: ZK0_ENGINE is 'lxc'; expected docker or podman."
+
+
 def test_docker_detached_is_a_named_container_with_its_log_and_stop_commands():
     command = train_in("podman", "--detached", "-r", "num-server-rounds=2")
     assert command[:4] == ["podman", "run", "-d", "--name"] and command[4].startswith("zk0-")
