@@ -224,3 +224,22 @@ def test_rollout_videos_of_the_best_and_the_latest_round_are_linked_beside_it(tm
     page.feed(write_report(run_dir, history, config, {"round": 1, "action-mse": 300.123456}, 3).read_text())
     assert page.loads == ["server/videos/round_1.mp4", "server/videos/round_2.mp4"]
     assert all((run_dir / src).is_file() for src in page.loads)
+
+
+def test_an_owner_lit_more_dimly_than_every_other_is_warned(tmp_path):
+    """A simulated owner whose room lies beyond the other owners' span (here the left set-up lit at
+    0.2, beside two owners with the left set-up as it is, lit at 0.8) is named with how its room
+    differs; owners inside the span, and datasets that are not simulated, are not."""
+    run_dir = tmp_path / "run"
+    clients = {0: "sim-so101-left-cube", 1: "sim-so101-left-outside-dim-0-cube", 2: "sim-so101-left-cube", 3: "a"}
+    history = History(run_dir, clients, {})
+    for index in clients:
+        history.add_client(1, "train", index, {"train-loss": 1.0, "num-examples": 16})
+    history.write_round(1)
+    snapshot = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    page = Tables()
+    page.feed(write_report(run_dir, snapshot, {"num-server-rounds": 1}, None, 1).read_text())
+    text = " ".join(" ".join(page.text).split())
+    assert "Client 1 (sim-so101-left-outside-dim-0-cube) is outside the span" in text
+    assert "lit more dimly (0.20) than any other owner's room (0.80-0.80)" in text
+    assert "Client 0" not in text and "Client 2" not in text and "Client 3" not in text

@@ -339,3 +339,20 @@ def test_the_graded_outcomes_are_a_funnel_over_seeded_episodes(env):
     for success, outcome in outcomes:
         assert outcome["reached"] >= outcome["grasped"] >= outcome["lifted"] >= success, outcomes
     assert any(outcome["grasped"] for _, outcome in outcomes[4:]), f"the off-centre expert grasps: {outcomes[4:]}"
+
+
+def test_an_owners_set_up_outside_the_span_changes_only_the_axis_it_names():
+    """``sim-so101-<owner>-outside-<axis>-<N>``: the owner's own task (region, colours, pace) with the
+    same drawn value on that axis as the server's condition of that name; owners' own generated
+    set-ups take no such prefix."""
+    from zk0.sim.tasks import OWNERS
+
+    left = SIM_SPECS["sim-so101-left"]
+    for axis, field_name in (("dim", "light"), ("camera", "front_camera"), ("table", "table_rgba")):
+        spec = SIM_SPECS[f"sim-so101-left-outside-{axis}-3-cube"]
+        server = SIM_SPECS[f"sim-so101-outside-{axis}-3"]
+        assert spec.task.cube_in_state and spec.task.region == left.task.region and spec.task.colours == left.task.colours
+        assert getattr(spec.task.look, field_name) == getattr(server.task.look, field_name)
+        assert replace(spec.task.look, **{field_name: getattr(left.task.look, field_name)}) == left.task.look
+    assert {f"{o.name}-outside-dim-0" in SIM_SPECS for o in OWNERS if o.role == "client"} == {True}
+    assert "sim-so101-left-owner-3" not in SIM_SPECS and "sim-so101-eval-outside-dim-0" not in SIM_SPECS

@@ -19,6 +19,7 @@ from markupsafe import Markup
 
 from zk0.artifacts.run_folder import CHARTS, SIM_CHARTS, clients_trained, write_text
 from zk0.learning.rates import success_text
+from zk0.sim.tasks import SIM_SPECS, beyond_span
 
 REPORT_FILE = "report.html"
 ROLLOUT = (
@@ -43,7 +44,7 @@ th, td { border: 1px solid #ddd; padding: 0.25em 0.6em; text-align: right; }
 th { background: #f4f4f4; } td.text, th.text { text-align: left; }
 tr.best td { background: #eef8ee; font-weight: bold; }
 pre { background: #f6f6f6; padding: 0.8em; overflow-x: auto; }
-.charts img { max-width: 48%; margin: 0.5em 1%; } .refusal { color: #a00; }
+.charts img { max-width: 48%; margin: 0.5em 1%; } .refusal { color: #a00; } .outside-span { color: #a60; }
 </style>
 </head>
 <body>
@@ -106,6 +107,12 @@ folder (in simulation, this folder; on a SuperNode, its <code>--output-dir</code
 <code>--policy.path=clients/client_&lt;i&gt;/models/personal</code> in the command above, from that run folder:</p>
 <pre>{{ personal_rollout }}</pre>
 {% endif %}
+{% for warning in outside_span %}
+<p class="outside-span">Client {{ warning.index }} ({{ warning.dataset }}) is outside the span the other owners
+trained in: {{ warning.how }}. The federation met these conditions only in this owner's own frames, so the global
+model may fail there (docs/learning.md measures how often, with and without <code>image-transforms</code>): judge it by
+its success in its own conditions, and try its personal model.</p>
+{% endfor %}
 {% for client in clients %}{% for refusal in client.refusals %}
 <p class="refusal">Round {{ refusal.round }}, client {{ client.index }} ({{ client.dataset }}), {{ refusal.phase }}: {{ refusal.reason }}</p>
 {% endfor %}{% endfor %}
@@ -263,6 +270,21 @@ def client_rows(history: dict) -> list[dict]:
     return rows
 
 
+def outside_span(history: dict) -> list[dict]:
+    """Each simulated client whose room lies beyond the span of the other simulated clients' rooms,
+    and how (zk0.sim.tasks.beyond_span): an owner lit more dimly than every other trains the only
+    dim frames the federation sees, and a model that succeeds in the server's conditions may
+    almost never succeed there. Real owners' rooms are not known to the server, so nothing is said."""
+    simulated = {int(i): name for i, name in history["clients"].items() if name in SIM_SPECS}
+    warnings = []
+    for index, name in sorted(simulated.items()):
+        others = [SIM_SPECS[other].task.look for i, other in simulated.items() if i != index]
+        how = beyond_span(SIM_SPECS[name].task.look, others) if others else []
+        if how:
+            warnings.append({"index": index, "dataset": name, "how": "; ".join(how)})
+    return warnings
+
+
 def _own_success(evaluation: dict, prefix: str) -> tuple[float, str] | None:
     """A client's closed-loop success in its own conditions (``own-*`` or ``personal-own-*``), with its interval."""
     if f"{prefix}success-rate" not in evaluation:
@@ -312,6 +334,7 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
         videos=_videos(run_dir, best, last),
         clients=clients,
         personal=any(c["personal_mse"] is not None for c in clients),
+        outside_span=outside_span(history),
         personal_rollout=ROLLOUT.replace("POLICY", "clients/client_<i>/models/personal"),
         config=sorted(config.items()),
     )

@@ -149,12 +149,15 @@ OUTSIDE_SEED = 2027
 OUTSIDE = ("dim", "bright", "tint", "camera", "table")  # the look's axes a condition outside the span varies
 
 
-def outside_condition(axis: str, index: int) -> DemoSpec:
-    """Condition ``index`` outside the span on one ``axis`` (``sim-so101-outside-<axis>-<index>``):
-    the server's task and look with that one axis drawn beyond every owner's, so a benchmark measures
-    how a model generalises, not how it was tuned. A pure function of its name, like the owners."""
+def outside_condition(axis: str, index: int, base: DemoSpec | None = None) -> DemoSpec:
+    """Condition ``index`` outside the span on one ``axis``: the server's task and look
+    (``sim-so101-outside-<axis>-<index>``), or a hand-written owner's (``base``:
+    ``sim-so101-left-outside-<axis>-<index>``), with that one axis drawn beyond every owner's, so a
+    benchmark measures how a model generalises, not how it was tuned. A pure function of its name,
+    like the owners; the same axis and index draw the same value whatever the base."""
     rng = np.random.default_rng([OUTSIDE_SEED, OUTSIDE.index(axis), index])
-    look = SERVER_TASK.look
+    task = base.task if base else SERVER_TASK
+    look = task.look
     if axis == "dim":
         look = replace(look, light=float(rng.uniform(0.2, 0.45)))
     elif axis == "bright":
@@ -172,24 +175,68 @@ def outside_condition(axis: str, index: int) -> DemoSpec:
         low = bool(rng.integers(2))
         colour = rng.uniform(0.1, 0.25, size=3) if low else rng.uniform(0.72, 0.9, size=3)
         look = replace(look, table_rgba=(*(float(c) for c in colour), 1.0))
+    prefix = base.name if base else "sim-so101"
     return DemoSpec(
-        f"sim-so101-outside-{axis}-{index}",
-        f"zk0/sim_so101_outside_{axis}_{index}",
-        replace(SERVER_TASK, look=look),
+        f"{prefix}-outside-{axis}-{index}",
+        f"{prefix.replace('sim-so101', 'zk0/sim_so101').replace('-', '_')}_outside_{axis}_{index}",
+        replace(task, look=look),
         episodes=6,
         role="server",
     )
 
 
+# How far beyond the other owners' span a look must lie before a report says so (light, tint and
+# table channels; the front camera's place in metres): the outside conditions lie further still.
+SPAN_MARGIN = 0.05
+CAMERA_MARGIN = 0.02
+
+
+def beyond_span(look: Look, others: list[Look]) -> list[str]:
+    """How ``look`` lies beyond the span of ``others`` (each phrase one axis; none: inside it), so
+    report.html can tell an owner that the federation met its room only in its own frames."""
+    phrases = []
+    lights = [o.light for o in others]
+    lit = f"({look.light:.2f}) than any other owner's room ({min(lights):.2f}-{max(lights):.2f})"
+    if look.light < min(lights) - SPAN_MARGIN:
+        phrases.append(f"lit more dimly {lit}")
+    if look.light > max(lights) + SPAN_MARGIN:
+        phrases.append(f"lit more brightly {lit}")
+    for channel, name in enumerate(("red", "green", "blue")):
+        lowest = min(o.light_tint[channel] for o in others)
+        if look.light_tint[channel] < lowest - SPAN_MARGIN:
+            phrases.append(
+                f"its light has less {name} ({look.light_tint[channel]:.2f}) than any other's ({lowest:.2f})"
+            )
+    for axis, name in ((1, "sideways"), (2, "in height")):
+        values = [o.front_camera[axis] for o in others]
+        if not min(values) - CAMERA_MARGIN <= look.front_camera[axis] <= max(values) + CAMERA_MARGIN:
+            phrases.append(
+                f"its front camera stands {name} at {look.front_camera[axis]:.2f} m, beyond every other's "
+                f"({min(values):.2f}-{max(values):.2f} m)"
+            )
+    tables = [c for o in others for c in o.table_rgba[:3]]
+    if max(look.table_rgba[:3]) < min(tables) - SPAN_MARGIN or min(look.table_rgba[:3]) > max(tables) + SPAN_MARGIN:
+        shade = "darker" if max(look.table_rgba[:3]) < min(tables) else "lighter"
+        phrases.append(f"its table is {shade} than any other's")
+    return phrases
+
+
 def _generated(match) -> DemoSpec:
     kind, index = match["kind"], int(match["index"])
-    spec = sim_owner(index) if kind == "owner" else outside_condition(kind.removeprefix("outside-"), index)
+    if kind == "owner":
+        if match["at"]:  # an owner's conditions are made from the server's or a hand-written owner's
+            raise KeyError(match.string)
+        spec = sim_owner(index)
+    else:
+        base = next(o for o in OWNERS if o.name == f"sim-so101-{match['at']}") if match["at"] else None
+        spec = outside_condition(kind.removeprefix("outside-"), index, base)
     return with_cube_in_state(spec) if match["cube"] else spec
 
 
 SIM_SPECS: Catalogue[DemoSpec] = Catalogue(
     {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))},
-    rf"sim-so101-(?P<kind>owner|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?",
+    rf"sim-so101-(?:(?P<at>{'|'.join(o.name.removeprefix('sim-so101-') for o in OWNERS if o.role == 'client')})-)?"
+    rf"(?P<kind>owner|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?",
     _generated,
-    "sim-so101-owner-<N>[-cube], sim-so101-outside-<dim|bright|tint|camera|table>-<N>[-cube]",
+    "sim-so101-owner-<N>[-cube], sim-so101[-<owner>]-outside-<dim|bright|tint|camera|table>-<N>[-cube]",
 )
