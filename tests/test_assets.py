@@ -100,6 +100,25 @@ def test_stale_asset_is_regenerated(tmp_path):
     assert LeRobotDataset("zk0/synth_so100_eval", root=first).num_episodes == 2
 
 
+def test_a_dataset_recorded_with_more_episodes_is_kept_by_a_run_that_asks_for_no_count(tmp_path):
+    """``zk0 assets --episodes 8`` and then train.sh's asset step (no count): the 8 stay. A count
+    asked for and different from what is there records it again, and says so in one sentence."""
+    from loguru import logger
+
+    ensure_dataset("synth-so100-eval", tmp_path, episodes=8)
+    root = ensure_dataset("synth-so100-eval", tmp_path)
+    assert LeRobotDataset("zk0/synth_so100_eval", root=root).num_episodes == 8
+    messages = []
+    sink = logger.add(lambda m: messages.append(m.record["message"]), level="WARNING")
+    try:
+        ensure_dataset("synth-so100-eval", tmp_path, episodes=7)
+        ensure_dataset("synth-so100-eval", tmp_path, episodes=7)  # as it is now: nothing to say
+    finally:
+        logger.remove(sink)
+    assert LeRobotDataset("zk0/synth_so100_eval", root=root).num_episodes == 7
+    assert messages == ["Recording 'synth-so100-eval' again with 7 episodes in place of the 8 it has: 7 were asked for."]
+
+
 @pytest.mark.parametrize(
     ("call", "needle"),
     [

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from filelock import FileLock
+from loguru import logger
 
 from zk0.common.cache import default_cache_root
 from zk0.common.errors import Zk0Error
@@ -70,11 +71,16 @@ def _ensure(target: Path, manifest: dict, build: Callable[[Path], None]) -> Path
     return target
 
 
-def _manifest_matches(target: Path, manifest: dict) -> bool:
+def _recorded(target: Path) -> dict | None:
+    """The manifest of the asset at ``target`` (None: none there, or unreadable)."""
     try:
-        return json.loads((target / MANIFEST).read_text()) == manifest
+        return json.loads((target / MANIFEST).read_text())
     except (OSError, ValueError):
-        return False
+        return None
+
+
+def _manifest_matches(target: Path, manifest: dict) -> bool:
+    return _recorded(target) == manifest
 
 
 def ensure_backbone(root: Path | None = None, kind: str = TINY_BACKBONE) -> Path:
@@ -136,7 +142,12 @@ def generated_dataset(name: str, root: Path | None = None) -> Path | None:
 
 
 def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes: int | None = None) -> Path:
-    """The synthetic dataset ``name`` as a LeRobotDataset root, generated if missing or stale."""
+    """The synthetic dataset ``name`` as a LeRobotDataset root, generated if missing or stale.
+
+    With ``episodes`` None, a dataset generated the same way with at least its default number of
+    episodes is taken as it is: ``zk0 assets --episodes 30`` records 30 and the run after it (train.sh's
+    asset step asks for no count) trains on those 30. A count asked for and different from what is
+    there records it again, and says so in one sentence."""
     target = synthetic_dataset_root(name, root)
     if episodes is not None and episodes < 1:
         raise AssetError(f"Episode count {episodes} for {name!r} is invalid; expected a positive integer.")
@@ -145,6 +156,16 @@ def ensure_dataset(name: str, root: Path | None = None, seed: int = 0, episodes:
     manifest = {"asset": name, "version": GENERATOR_VERSION, "seed": seed, "episodes": episodes or spec.episodes}
     if name in SIM_SPECS:
         manifest["recorder"] = RECORDER_VERSION
+    recorded = _recorded(target)
+    if recorded and recorded == {**manifest, "episodes": recorded.get("episodes")}:
+        if episodes is None and recorded["episodes"] >= manifest["episodes"]:
+            return target  # what its owner recorded with --episodes stays: a run asking for no count takes it
+        if recorded["episodes"] != manifest["episodes"]:
+            logger.warning(
+                "Recording {!r} again with {} episodes in place of the {} it has: {}.",
+                name, manifest["episodes"], recorded["episodes"],
+                f"{episodes} were asked for" if episodes else f"it has fewer than its default {spec.episodes}",
+            )  # fmt: skip
     _quiet_video_encoders()
     return _ensure(target, manifest, lambda tmp: _write_dataset(tmp, name, seed, episodes))
 
