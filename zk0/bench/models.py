@@ -49,8 +49,9 @@ def federate(args, rounds: int, name: str, **keys) -> dict | None:
         "wire-dtype": args.wire_dtype,
         **keys,
     }
-    # Strings as TOML basic strings (JSON's escaping): a regex's backslashes reach the run config as typed.
-    run_config = " ".join(f"{k}={json.dumps(v)}" if isinstance(v, str) else f"{k}={v}" for k, v in settings.items())
+    # Strings as TOML basic strings (JSON's escaping: a regex's backslashes reach the run config as
+    # typed), booleans as TOML's true and false (JSON's spelling too).
+    run_config = " ".join(f"{k}={json.dumps(v) if isinstance(v, str | bool) else v}" for k, v in settings.items())
     started = time.perf_counter()
     history = run_federation(run_config, args.clients, Path(args.output_dir).resolve() / name, f"bench: {name}")
     if history is not None:
@@ -165,11 +166,13 @@ def closed_loop_all(
     seed: int,
     say: Callable[[str], None],
     stash: Stash | None = None,
+    conditions: dict[str, tuple[str, str]] | None = None,
 ) -> dict:
     """Models' success in closed loop in evaluation sets' conditions (the server's span, and each
     client's own set-up), with that set's processors: ``plan`` names, for each column, the models to
-    roll out there. {model: {column: rates}}, each with its interval and its per-episode
-    ``outcomes`` (1 = success, in seed order: every model meets the same ``episodes`` episodes,
+    roll out there. ``conditions`` adds columns of other conditions (zk0.sim.tasks' names), each
+    rolled out with an evaluation set's processors: column -> (evaluation set, conditions).
+    {model: {column: rates}}, each with its interval and its per-episode ``outcomes`` (1 = success, in seed order: every model meets the same ``episodes`` episodes,
     seeded from ``seed``, so two can be compared pairwise). Each rollout's figures are kept in
     ``stash`` as it finishes, or taken from it; a set whose rollouts are all kept builds no envs."""
     from zk0.learning.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
@@ -179,14 +182,15 @@ def closed_loop_all(
 
     matrix: dict[str, dict[str, dict]] = {label: {} for label in models}
     for column, labels in plan.items():
-        bundle, split, _ = columns[column]
+        processors, where = (conditions or {}).get(column, (column, None))
+        bundle, split, _ = columns[processors]
         if stash is not None and all(stash.has(name(column, label)) for label in labels):
             for label in labels:
                 matrix[label][column] = stash.figures(name(column, label), dict)
             say(f"every model rolled out in {column}'s conditions (kept from an earlier run)")
             continue
         height, width, _ = split.meta.features["observation.images.front"]["shape"]
-        loop = ClosedLoop(split.entry.name, episodes, seed, height, width)
+        loop = ClosedLoop(where or split.entry.name, episodes, seed, height, width)
 
         try:
             for label in labels:
