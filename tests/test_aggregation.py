@@ -128,7 +128,7 @@ def test_a_first_round_without_enough_updates_stops_the_run_with_each_clients_se
     )
     assert messages == [
         "Round 1: Client 0 (a): Dataset 'a' records no camera.",
-        "Round 1: node 2 failed: client crashed",
+        "Round 1: no usable update from node 2 (a client that has sent no update yet): client crashed",
     ]
     assert strategy.recorded == [], "nothing is recorded as if the round had trained"
 
@@ -138,6 +138,32 @@ class TwoNodes:
 
     def get_node_ids(self):
         return [1, 2]
+
+
+def test_a_node_the_superlink_answers_for_is_named_once_by_its_own_node_and_client(strategy):
+    """A SuperNode whose heartbeat stopped gets an error reply from the SuperLink itself (from node
+    1, Flower's SUPERLINK_NODE_ID): the message it answers says the node, and the server names that
+    node and its client once, with the reason, not as a straggler."""
+    from flwr.common.constant import SUPERLINK_NODE_ID
+
+    strategy.aggregate_train(1, [reply(1, arrays(1.0), 10), reply(2, arrays(1.0), 10)])  # node 2 is client 2
+    sent = list(strategy.configure_train(2, arrays(0.0), ConfigRecord({}), TwoNodes()))
+    for index, msg in enumerate(sent):  # as Flower's grid does when it sends them
+        msg.metadata.__dict__["_message_id"] = f"m{index}"
+    to_two = next(m for m in sent if m.metadata.dst_node_id == 2)
+    unavailable = Message(Error(code=0, reason="Node Unavailable"), reply_to=to_two)
+    unavailable.metadata.__dict__["_src_node_id"] = SUPERLINK_NODE_ID
+    assert unavailable.metadata.src_node_id == SUPERLINK_NODE_ID
+    messages, late = [], []
+    strategy.observer.record_late = lambda rnd, clients, nodes: late.append((rnd, clients, nodes))
+    sink = logger.add(lambda m: messages.append(m.record["message"]), level="WARNING")
+    try:
+        strategy.aggregate_train(2, [reply(1, arrays(1.0), 10), unavailable])
+    finally:
+        logger.remove(sink)
+    assert messages[0] == "Round 2: no usable update from node 2 (client 2): Node Unavailable"
+    assert not any("node 1" in m or "(client 2); aggregating" in m for m in messages), messages
+    assert late == []
 
 
 def test_client_evaluation_rides_on_the_next_train_message_and_only_the_last_round_has_its_own(strategy):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -233,6 +234,55 @@ def test_a_supernode_killed_during_round_2_is_named_and_the_run_completes(federa
     while workers_under(federation.root / "robot-2") and time.monotonic() < deadline:
         time.sleep(0.5)
     assert not workers_under(federation.root / "robot-2"), "a worker exits when its SuperNode is gone"
+
+
+def wait_for(out: Path, pattern: str, run: subprocess.Popen, timeout: float = 300) -> None:
+    """Until ``pattern`` exists under ``out`` (the run still going)."""
+    deadline = time.monotonic() + timeout
+    while not list(out.glob(pattern)):
+        assert run.poll() is None and time.monotonic() < deadline, f"the run ended before {pattern}"
+        time.sleep(0.3)
+
+
+def test_owners_join_leave_and_come_back_mid_run(tmp_path):
+    """Five rounds on the Deployment Engine, min-train-clients=3. After round 1, robot-2 is killed
+    and robot-4 stops for good: each is named once when its update does not come, and round 2
+    keeps the global model. After round 2, robot-3 registers for a dataset the run has not seen
+    and robot-2 is restarted; round 3 waits for three SuperNodes. robot-3 passes its pre-flight and
+    trains from round 3 on, and the round's JSON and report.html say so. robot-2 (its
+    Context.state gone with its process) continues from the training state it kept after round 1
+    and trains from round 3's global model; the run finishes without robot-4."""
+    robots = {**ROBOTS, "robot-4": "synth-so101-sorting"}
+    with loopback_federation(tmp_path / "fed", robots, later=("robot-3",)) as fed:
+        out = tmp_path / "outputs"
+        config = "num-server-rounds=5 local-steps=2 batch-size=4 eval-batches=1 min-train-clients=3 checkpoint-interval=1"
+        run = subprocess.Popen(
+            [tool("flwr"), "run", str(PROJECT_ROOT), "lan", "--stream", "--run-config", f"{config} output-dir='{out}'"],
+            env=fed.env, cwd=PROJECT_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+        wait_for(out, "*/server/round_1.json", run)
+        fed.stop("robot-2", signal.SIGKILL)
+        fed.stop("robot-4", signal.SIGTERM)
+        wait_for(out, "*/server/round_2.json", run)
+        fed.register("robot-3")
+        fed.supernode("robot-3", "synth-so101-reach", "--key", "robot-3")
+        fed.supernode("robot-2", ROBOTS["robot-2"], "--key", "robot-2")
+        log, _ = run.communicate(timeout=900)
+    run_dir, record = history(out)
+    rounds = {r["round"]: r for r in record["rounds"]}
+    assert list(rounds) == [0, 1, 2, 3, 4, 5], log[-3000:]
+    took_part = {i: [n for n, r in rounds.items() if "train" in r["clients"].get(i, {})] for i in ("0", "1", "2", "3")}
+    assert took_part == {"0": [1, 2, 3, 4, 5], "1": [1, 3, 4, 5], "2": [1], "3": [3, 4, 5]}, took_part
+    assert all("error" not in c.get("train", {}) for r in rounds.values() for c in r["clients"].values())
+    assert rounds[3]["joined"] == [3] and "joined" not in rounds[4]
+    server_log = (run_dir / "server" / "server.log").read_text()
+    for index in (1, 2):
+        assert len(re.findall(rf"no usable update from node \d+ \(client {index}\)", server_log)) == 1, server_log
+    assert "Round 2: 1 valid updates, fewer than min-train-clients=3; the global model is kept." in server_log
+    restarted = client_log(fed, "robot-2", run_dir, 1)
+    assert "Continuing at batch 2 with the optimizer state this client kept after round 1." in restarted
+    page = (run_dir / "report.html").read_text().replace(' class="text"', "")
+    assert "<td>synth-so101-reach</td><td>3</td>" in page and "<td>synth-so100-stacking</td><td>1</td>" in page
 
 
 def test_supernodes_without_cpus_divide_the_machine_between_them(tmp_path, monkeypatch):

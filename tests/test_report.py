@@ -102,8 +102,9 @@ def test_the_reports_numbers_are_the_histories(tmp_path):
 
     clients = {row[1][0]: row for row in page.tables["clients"][1:]}
     assert set(clients) == {"a", "b", "c<&>"}, "names are escaped in the HTML and read back as given"
-    assert float(clients["a"][3][1]) == 32 and float(clients["b"][4][1]) == 1.5  # samples; last train loss
-    assert clients["c<&>"][6][0] == "1"
+    assert [clients[name][2][0] for name in ("a", "b", "c<&>")] == ["1", "1", "2"]  # from round
+    assert float(clients["a"][4][1]) == 32 and float(clients["b"][5][1]) == 1.5  # samples; last train loss
+    assert clients["c<&>"][7][0] == "1"
     assert any(REFUSAL in t for t in page.text), "the refusal's own sentence is shown"
     assert dict((k[0], v[0]) for k, v in page.tables["config"])["server-optimiser"] == "nesterov"
 
@@ -243,3 +244,23 @@ def test_an_owner_lit_more_dimly_than_every_other_is_warned(tmp_path):
     assert "Client 1 (sim-so101-left-outside-dim-0-cube) is outside the span" in text
     assert "lit more dimly (0.20) than any other owner's room (0.80-0.80)" in text
     assert "Client 0" not in text and "Client 2" not in text and "Client 3" not in text
+
+
+def test_an_owner_who_joined_mid_run_is_shown_from_the_round_it_joined(tmp_path):
+    """Round 2's record names the client whose first reply it is (``joined``), and the clients'
+    table gives each one's first round."""
+    run_dir = tmp_path / "run"
+    history = History(run_dir, {0: "a", 1: "b", 2: "c"}, {})
+    for number, clients in ((1, (0, 1)), (2, (0, 1, 2)), (3, (0, 2))):
+        for index in clients:
+            history.add_client(number, "train", index, {"train-loss": 1.0, "num-examples": 16})
+        history.write_round(number)
+    assert "joined" not in json.loads((run_dir / "server" / "round_1.json").read_text())
+    assert json.loads((run_dir / "server" / "round_2.json").read_text())["joined"] == [2]
+    assert "joined" not in json.loads((run_dir / "server" / "round_3.json").read_text())
+    snapshot = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    page = Tables()
+    page.feed(write_report(run_dir, snapshot, {"num-server-rounds": 3}, None, 3).read_text())
+    header, *rows = page.tables["clients"]
+    first = [c[0] for c in header].index("from round")
+    assert [row[first][0] for row in rows] == ["1", "1", "2"]

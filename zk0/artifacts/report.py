@@ -89,12 +89,12 @@ task as in docs/robot-owners.md):</p>
 
 <h2>Clients</h2>
 <table id="clients">
-<tr><th>client</th><th class="text">dataset</th><th>rounds trained</th><th>samples trained</th>
+<tr><th>client</th><th class="text">dataset</th><th>from round</th><th>rounds trained</th><th>samples trained</th>
 <th>last train loss</th><th>last evaluation action MSE</th>
 {% if personal %}<th>its personal model's action MSE</th><th>global model's success in its own conditions</th>
 <th>personal model's success there</th>{% endif %}<th>refusals</th></tr>
 {% for client in clients %}
-<tr><td>{{ client.index }}</td><td class="text">{{ client.dataset }}</td><td>{{ client.rounds }}</td>
+<tr><td>{{ client.index }}</td><td class="text">{{ client.dataset }}</td><td>{{ client.first }}</td><td>{{ client.rounds }}</td>
 {{ cell(client.samples) }}{{ cell(client.loss) }}{{ cell(client.mse) }}
 {% if personal %}{{ cell(client.personal_mse) }}{{ cell(client.own_success) }}{{ cell(client.personal_success) }}{% endif %}
 <td>{{ client.refusals|length }}</td></tr>
@@ -237,10 +237,12 @@ def late_cell(late: dict | None) -> tuple[int, str] | None:
 
 
 def client_rows(history: dict) -> list[dict]:
-    """Each client that took part: rounds and samples trained, its latest losses, its refusals."""
+    """Each client that took part: from which round (an owner may join mid-run), rounds and samples
+    trained, its latest losses, its refusals."""
     rows = []
     for index, dataset in history["clients"].items():
-        trained = [r["clients"][index]["train"] for r in history["rounds"] if "train" in r["clients"].get(index, {})]
+        trained_in = [r for r in history["rounds"] if "train" in r["clients"].get(index, {})]
+        trained = [r["clients"][index]["train"] for r in trained_in]
         evaluated = [
             r["clients"][index]["evaluate"] for r in history["rounds"] if "evaluate" in r["clients"].get(index, {})
         ]
@@ -257,6 +259,7 @@ def client_rows(history: dict) -> list[dict]:
             {
                 "index": int(index),
                 "dataset": dataset,
+                "first": min((r["round"] for r in trained_in), default="-"),
                 "rounds": len(ok),
                 "samples": sum(int(t.get("num-examples", 0)) for t in ok) if ok else None,
                 "loss": ok[-1].get("train-loss") if ok else None,

@@ -108,9 +108,18 @@ class History:
         return self.rounds.setdefault(server_round, {"round": server_round, "clients": {}})
 
     def add_client(self, server_round: int, phase: str, index: int, metrics: dict) -> None:
+        """A client's reply; the first training reply of a client that joined after round 1 is noted
+        in its round's ``joined`` (an owner whose SuperNode connected mid-run took part from then on;
+        its evaluation of the round before rides on that reply and is recorded in the round before)."""
+        if phase == "train" and server_round > 1 and not self.trained_before(index, server_round):
+            self.round(server_round).setdefault("joined", []).append(index)
         clients = self.round(server_round)["clients"]
         self._late.add(server_round)
         clients.setdefault(str(index), {"dataset": self.client_names.get(index, "?")})[phase] = metrics
+
+    def trained_before(self, index: int, server_round: int) -> bool:
+        """Whether client ``index`` replied to a train message in a round before ``server_round``."""
+        return any("train" in r["clients"].get(str(index), {}) for n, r in self.rounds.items() if n < server_round)
 
     def add(self, server_round: int, key: str, value: dict | float | None) -> None:
         """Set ``key`` of the round's record (nothing for None or an empty dict)."""

@@ -137,16 +137,19 @@ def warm_workers_of(pids: set[int]) -> list[psutil.Process]:
 
 
 @contextlib.contextmanager
-def loopback_federation(root: Path, supernodes: dict[str, str], cpus: int | None = None, registry: str = ""):
+def loopback_federation(
+    root: Path, supernodes: dict[str, str], cpus: int | None = None, registry: str = "", later: tuple[str, ...] = ()
+):
     """A running TLS federation under ``root``: ``supernodes`` maps key names to datasets, looked
     up in ``registry`` (default: pyproject.toml's), which the runs' config must name too.
 
-    Also creates a key pair named ``stranger`` that is never registered. Its processes get a
+    Also creates a key pair named ``stranger`` that is never registered, and one for each name in
+    ``later``: owners who join mid-run (the test registers the key and starts the SuperNode). Its processes get a
     temporary directory of their own that starts empty, as a new machine's does (what a
     SuperNode keeps there, such as its warm worker's folder, is created in the order a first
     start creates it). Stops everything and removes that directory on exit.
     """
-    make_federation_certs(root / "certs", [], [*supernodes, "stranger"])
+    make_federation_certs(root / "certs", [], [*supernodes, *later, "stranger"])
     machine_tmp = Path(tempfile.mkdtemp(prefix="zk0-machine-"))  # short: the worker's socket lives there
     port = free_port()
     home = root / "flwr-home"

@@ -122,6 +122,7 @@ class ValidatingStrategy(Strategy):
         self.rule = rule  # a robust rule of Flower's (zk0.federation.robust) in place of the mean; None: the mean
         self.current: ArrayRecord | None = None  # the global model this round's updates start from
         self.sampled: set[int] = set()  # nodes asked to train this round
+        self.sent: list[Message] = []  # this round's train instructions (the grid gives each its id as it sends it)
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
 
     def summary(self) -> None:
@@ -183,6 +184,7 @@ class ValidatingStrategy(Strategy):
         for msg in messages:  # the optimiser keeps the fp32 model; clients get the wire dtype
             msg.content[self.inner.arrayrecord_key] = wire
         self.sampled = {msg.metadata.dst_node_id for msg in messages}
+        self.sent = messages
         previous = server_round - 1
         if previous > self.round_offset and self.evaluates_in(previous):
             self._evaluate_first(messages, previous)
@@ -199,18 +201,15 @@ class ValidatingStrategy(Strategy):
     def _log_missing(self, server_round: int, valid: list[Message], replies: list[Message]) -> None:
         """Name every sampled node whose update did not arrive (crashed, offline, rejected); a node
         that replied with an error was named with its reason already."""
-        failed = {msg.metadata.src_node_id for msg in replies if msg.has_error()}
+        failed = {self.node_of(msg) for msg in replies if msg.has_error()}
         for node in sorted(self.sampled - {msg.metadata.src_node_id for msg in valid} - failed):
-            client = self.node_clients.get(node)
-            who = f"client {client}" if client is not None else "a client that has sent no update yet"
-            logger.warning(
-                "Round {}: no usable update from node {} ({}); aggregating the others.", server_round, node, who
-            )
+            who = self._named(node)
+            logger.warning("Round {}: no usable update from node {} ({}); aggregating the others.", server_round, node, who)
 
     def _record_late(self, server_round: int, replies: list[Message]) -> None:
         """The sampled nodes that sent no reply at all (a failed one sends its error): past the
         round's deadline (or the phase timeout), their update is dropped; the observer names them."""
-        late = sorted(self.sampled - {msg.metadata.src_node_id for msg in replies})
+        late = sorted(self.sampled - {self.node_of(msg) for msg in replies})
         if late:
             clients = sorted(self.node_clients[n] for n in late if n in self.node_clients)
             self.observer.record_late(server_round, clients, [n for n in late if n not in self.node_clients])
@@ -242,14 +241,26 @@ class ValidatingStrategy(Strategy):
                 self.node_clients[msg.metadata.src_node_id] = int(msg.content[CLIENT]["index"])
         return valid
 
-    @staticmethod
-    def _log_failure(server_round: int, msg: Message) -> None:
+    def node_of(self, reply: Message) -> int:
+        """The node a reply answers for. The SuperLink answers for a node that went away (its
+        heartbeat stopped) with an error from the SuperLink itself; the message it replies to says
+        which node that was."""
+        asked = {msg.metadata.message_id: msg.metadata.dst_node_id for msg in self.sent}
+        return asked.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
+
+    def _named(self, node: int) -> str:
+        client = self.node_clients.get(node)
+        return f"client {client}" if client is not None else "a client that has sent no update yet"
+
+    def _log_failure(self, server_round: int, msg: Message) -> None:
         """A client's refusal is its own sentence (it names the client and dataset); anything else
-        comes from Flower or a crash and is named by node."""
+        comes from Flower or a crash and is named by node and client, once."""
         if msg.error.code == REFUSED:
             logger.error("Round {}: {}", server_round, msg.error.reason)
         else:
-            logger.warning("Round {}: node {} failed: {}", server_round, msg.metadata.src_node_id, msg.error.reason)
+            node = self.node_of(msg)
+            who, reason = self._named(node), msg.error.reason
+            logger.warning("Round {}: no usable update from node {} ({}): {}", server_round, node, who, reason)
 
     def aggregate_train(
         self, server_round: int, replies: Iterable[Message]
@@ -410,7 +421,7 @@ class ValidatingStrategy(Strategy):
         failures = {}
         for msg in (m for m in replies if m.has_error()):
             self._log_failure(server_round, msg)
-            if (client := self.node_clients.get(msg.metadata.src_node_id)) is not None:
+            if (client := self.node_clients.get(self.node_of(msg))) is not None:
                 failures[client] = msg.error.reason
         answered = [m for m in replies if not m.has_error()]  # the failures are logged once, above
         metrics = self.inner.aggregate_evaluate(server_round, answered) if answered else None

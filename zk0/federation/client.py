@@ -206,7 +206,9 @@ def _catch_up(session: ClientSession, context: Context, config: ConfigRecord) ->
     A SuperNode may run a message in a new process, and Ray may give a simulated node to another
     actor for a round; either way the node's ``Context.state`` holds where training stopped. A
     resumed run's first round continues from the state this client kept on disk at the
-    checkpoint the server resumed from (zk0.learning.client_state). Returns the seconds it took.
+    checkpoint the server resumed from, and a SuperNode restarted mid-run (its ``Context.state``
+    gone with its process) from the last one it kept (zk0.learning.client_state). It trains from
+    the global model of the round it is sent, never an older one. Returns the seconds it took.
     """
     started = time.perf_counter()
     if PROGRESS in context.state:
@@ -221,8 +223,9 @@ def _catch_up(session: ClientSession, context: Context, config: ConfigRecord) ->
         previous = int(config["server-round"]) - 1
         if (state := client_state.kept(state_folder(session, context, config), previous)) is None:
             return 0.0
-        logger.info("Continuing the resumed run at batch {} with the optimizer state of round {}.", state[0], previous)
-        session.trainer.restore(*state)
+        kept_round, seen, optimizer = state
+        logger.info("Continuing at batch {} with the optimizer state this client kept after round {}.", seen, kept_round)
+        session.trainer.restore(seen, optimizer)
     return time.perf_counter() - started
 
 

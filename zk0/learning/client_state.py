@@ -44,11 +44,15 @@ def keep(folder: Path, server_round: int, trainer: LocalTrainer) -> None:
         state_file(folder, old).unlink()
 
 
-def kept(folder: Path, server_round: int) -> tuple[int, ArrayRecord] | None:
-    """The batches seen and optimizer state kept after ``server_round``, if this client kept them."""
-    path = state_file(folder, server_round)
-    if not path.is_file():
+def kept(folder: Path, server_round: int) -> tuple[int, int, ArrayRecord] | None:
+    """The newest state this client kept after ``server_round`` or before it: that round, the
+    batches seen and the optimizer state (None: none kept). A resumed run finds the one of the
+    round it resumes from; a SuperNode restarted mid-run, the one of the last checkpoint round
+    before it stopped."""
+    rounds = [int(p.stem.removeprefix("round_")) for p in folder.glob("round_*.safetensors")]
+    earlier = [r for r in rounds if r <= server_round]
+    if not earlier:
         return None
-    with safe_open(path, framework="pt") as state:
+    with safe_open(state_file(folder, max(earlier)), framework="pt") as state:
         seen = int(state.metadata()["batches-seen"])
-        return seen, ArrayRecord({name: state.get_tensor(name) for name in state.keys()})
+        return max(earlier), seen, ArrayRecord({name: state.get_tensor(name) for name in state.keys()})
