@@ -111,11 +111,27 @@ def _make(
 
 
 def open_split(
-    entry: DatasetEntry, meta: LeRobotDatasetMetadata, policy_cfg: PreTrainedConfig, run: RunConfig
+    entry: DatasetEntry,
+    meta: LeRobotDatasetMetadata,
+    policy_cfg: PreTrainedConfig,
+    run: RunConfig,
+    held_out: list[int] | None = None,
 ) -> DatasetSplit:
-    """A client's dataset: training episodes and the held-out ones."""
-    train_eps, eval_eps = split_episodes(meta.total_episodes, run.eval_episodes, entry.name)
+    """A client's dataset: training episodes and the held-out ones (``held_out``: the ones this
+    client held out earlier in the run, kept whatever the owner recorded since)."""
+    if held_out is None:
+        train_eps, eval_eps = split_episodes(meta.total_episodes, run.eval_episodes, entry.name)
+    else:
+        eval_eps = held_out
+        train_eps = [e for e in range(meta.total_episodes) if e not in set(held_out)]
     return DatasetSplit(entry, meta, _make(entry, policy_cfg, run, train_eps), _make(entry, policy_cfg, run, eval_eps))
+
+
+def with_training(split: DatasetSplit, meta: LeRobotDatasetMetadata, policy_cfg: PreTrainedConfig, run: RunConfig,
+                  episodes: list[int]) -> DatasetSplit:  # fmt: skip
+    """``split`` training on ``episodes`` of its dataset as ``meta`` now describes it, holding out
+    the same episodes as before (a grown dataset: zk0.federation.growth)."""
+    return DatasetSplit(split.entry, meta, _make(split.entry, policy_cfg, run, episodes), split.evaluation)
 
 
 def open_evaluation(

@@ -18,7 +18,7 @@ import re
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import psutil
@@ -35,6 +35,7 @@ from zk0.common.errors import Zk0Error
 from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data.loaders import DatasetSplit, eval_loader, open_split, train_loader
 from zk0.data.registry import DatasetEntry, Registry, load_registry
+from zk0.federation.growth import grown
 from zk0.federation.personal import Personaliser, build_personaliser
 from zk0.federation.stats import stats_to_record
 from zk0.federation.wire import CLIENT, EVALUATE_ROUND, EVALUATION, KEEP_STATE, SHAPE, decode, encode
@@ -53,6 +54,7 @@ from zk0.learning.training import LocalTrainer, evaluate
 
 # What must outlive a one-message process, in the node's Context.state.
 OPTIMIZER, PROGRESS = "zk0-optimizer", "zk0-progress"
+HELD_OUT = "zk0-held-out"  # Context.state: the episodes this client holds out, fixed for the run
 # Timing keys every reply carries (the same keys on every client, as Flower's averaging needs).
 TIMINGS = ("startup-s", "build-s", "restore-s", "handler-s")
 
@@ -70,6 +72,7 @@ class ClientSession:
     fingerprint: str
     party: str
     personal: Personaliser | None = None  # with personal-steps: built at the first evaluation
+    said_of_growth: set[str] = field(default_factory=set)  # why new episodes were refused, said once each
 
 
 def client_index(registry: Registry, node_config: dict) -> int:
@@ -82,17 +85,23 @@ def client_index(registry: Registry, node_config: dict) -> int:
 
 
 def build_client(
-    run: RunConfig, entry: DatasetEntry, model_cameras: list[str], index: int = 0, shapes: dict | None = None
+    run: RunConfig,
+    entry: DatasetEntry,
+    model_cameras: list[str],
+    index: int = 0,
+    shapes: dict | None = None,
+    held_out: list[int] | None = None,
 ) -> ClientSession:
     """Check and open ``entry`` (client ``index``) and build its SmolVLA, split, loaders and trainer.
 
-    ``shapes`` are the global model's state/action sizes, as the server sends them.
+    ``shapes`` are the global model's state/action sizes, as the server sends them; ``held_out``
+    the episodes this client held out earlier in the run (its dataset may have grown since).
     """
     party = f"client {index}"
     with logger.contextualize(party=party):
         meta = check_dataset(entry, model_inputs(run, model_cameras, shapes), run.eval_episodes)
         bundle = build_policy(run, meta, entry, model_cameras)
-        split = open_split(entry, meta, bundle.policy.config, run)
+        split = open_split(entry, meta, bundle.policy.config, run, held_out)
         trainer_kind = PrivateTrainer if run.dp == "record" else LocalTrainer  # DP-SGD per demonstration
         trainer = trainer_kind(bundle, split, train_loader(split.train, run, bundle.device), run)
         fingerprint = backbone_fingerprint(bundle)
@@ -145,9 +154,14 @@ def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, 
     index = client_index(registry, dict(context.node_config))
     entry = registry.clients[index]
     add_file_sink(client_log(dict(context.node_config), run, str(config["run-name"]), index), f"client {index}")
+    held = context.state.config_records.get(HELD_OUT)
     with _named(index, entry.name), prints_to_log("lerobot"):
-        _SESSIONS[key] = build_client(run, entry, registry.model_cameras(), index, model_shapes(config))
-    return _SESSIONS[key], time.perf_counter() - started
+        session = build_client(
+            run, entry, registry.model_cameras(), index, model_shapes(config), list(held["episodes"]) if held else None
+        )
+    context.state[HELD_OUT] = ConfigRecord({"episodes": list(session.split.evaluation.episodes)})
+    _SESSIONS[key] = session
+    return session, time.perf_counter() - started
 
 
 def client_label(index: int, dataset: str) -> str:
@@ -227,6 +241,20 @@ def _catch_up(session: ClientSession, context: Context, config: ConfigRecord) ->
         logger.info("Continuing at batch {} with the optimizer state this client kept after round {}.", seen, kept_round)
         session.trainer.restore(seen, optimizer)
     return time.perf_counter() - started
+
+
+def take_new_episodes(session: ClientSession) -> None:
+    """Train on the episodes the owner recorded since the client opened its dataset
+    (zk0.federation.growth): the trainer, and the personal model's fine-tuner, go on from the
+    grown training set."""
+    split = grown(session.split, session.run, session.bundle.policy.config, session.said_of_growth)
+    if split is None:
+        return
+    session.split = split
+    session.trainer.train_on(split, train_loader(split.train, session.run, session.bundle.device))
+    if session.personal:
+        tuner = session.personal.trainer
+        tuner.train_on(split, train_loader(split.train, tuner.run, session.bundle.device))
 
 
 def state_folder(session: ClientSession, context: Context, config: ConfigRecord) -> Path:
@@ -361,6 +389,8 @@ def handle(
         _check_server(session, content["config"])
         set_trainable(session.bundle, decode(content["arrays"], session.run.wire_dtype))
         restore = _catch_up(session, context, content["config"]) if kind == "train" else 0.0
+        if kind == "train":
+            take_new_episodes(session)
         reply = (
             _train(session, content, context, keep_optimizer, began)
             if kind == "train"

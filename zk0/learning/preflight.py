@@ -129,10 +129,20 @@ def _check_features(entry: DatasetEntry, meta: LeRobotDatasetMetadata, inputs: M
         )
 
 
-def _check_files(entry: DatasetEntry, meta: LeRobotDatasetMetadata, root: Path) -> None:
-    """Every data and video file an episode points to is there and not empty."""
+def check_episodes(entry: DatasetEntry, meta: LeRobotDatasetMetadata, episodes: list[int]) -> None:
+    """``episodes`` of a local dataset (recorded since a run opened it) as the pre-flight checks a
+    dataset: every file they point to there and not empty (a ``DataError`` naming the first that is not)."""
+    root = entry.local_root()
+    if root is not None:
+        _check_files(entry, meta, root, episodes)
+
+
+def _check_files(
+    entry: DatasetEntry, meta: LeRobotDatasetMetadata, root: Path, episodes: list[int] | None = None
+) -> None:
+    """Every data and video file an episode (of ``episodes``; default all) points to is there and not empty."""
     files = set()
-    for episode in range(meta.total_episodes):
+    for episode in range(meta.total_episodes) if episodes is None else episodes:
         files.add(meta.get_data_file_path(episode))
         files.update(meta.get_video_file_path(episode, key) for key in meta.video_keys)
     for relative in sorted(files):

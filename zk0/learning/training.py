@@ -172,6 +172,11 @@ class LocalTrainer:
             batch = augment(batch, meta.camera_keys, self.transforms)
         return bundle.preprocessor(batch)
 
+    def train_on(self, split: DatasetSplit, loader: DataLoader) -> None:
+        """Go on with a grown training set: the same optimizer, schedule and count of batches seen,
+        the next batch drawn from ``loader``."""
+        self.split, self.loader, self._batches = split, loader, None
+
     def _open_batches(self) -> None:
         """Open the data iterator if it is not open (opening one draws from PyTorch's generator)."""
         if self._batches is None:

@@ -279,6 +279,24 @@ def write_synthetic_dataset(spec: SyntheticSpec, root: Path, seed: int, episodes
         robot_type=spec.robot_type,
         use_videos=True,
     )
+    _record(dataset, spec, rng, n_episodes)
+    return root
+
+
+def append_synthetic_episodes(spec: SyntheticSpec, root: Path, seed: int, episodes: int) -> Path:
+    """Record ``episodes`` more of ``spec`` into the LeRobotDataset at ``root`` through lerobot's own
+    ``LeRobotDataset.resume``, as an owner records more with ``lerobot-record --resume=true``
+    (deterministic in ``seed`` and the count already there)."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    dataset = LeRobotDataset.resume(spec.repo_id, root=root)
+    rng = np.random.default_rng([seed, sum(map(ord, spec.name)), dataset.meta.total_episodes])
+    _record(dataset, spec, rng, episodes)
+    return root
+
+
+def _record(dataset, spec: SyntheticSpec, rng: np.random.Generator, n_episodes: int) -> None:
+    """``n_episodes`` of ``spec`` recorded into ``dataset`` (open for writing), then finalised."""
     x0, x1, y0, y1 = spec.target_region
     for _ in range(n_episodes):
         colour = spec.colours[int(rng.integers(len(spec.colours)))]
@@ -296,4 +314,3 @@ def write_synthetic_dataset(spec: SyntheticSpec, root: Path, seed: int, episodes
             state = action
         dataset.save_episode(parallel_encoding=False)
     dataset.finalize()
-    return root
