@@ -138,12 +138,11 @@ def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_s
     """The real `flwr run` with output-dir on a filesystem of its own (tmpfs). At 2 MB: refused before
     round 1 in one sentence naming the folder, what the run needs and what is free. Made 512 MB and
     filled by another program once round 1's checkpoint is written: the run stops with zk0's
-    sentence naming that disk, no traceback, no partial file; freed, `resume-from` finishes it with
-    the same model as a run that never met a full disk, bit for bit."""
+    sentence naming that disk, no traceback, no partial file; freed, `resume-from` finishes it (that
+    a resumed run equals one never interrupted, bit for bit, test_federation checks)."""
     import threading
     import time
 
-    import torch
     from safetensors.torch import load_file
 
     from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
@@ -177,11 +176,4 @@ def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_s
         (disk / "filler").unlink()
         log = flwr_run(env, f"{config} output-dir='{disk}' resume-from='{run_dir}'", cpu_federation(2, actors=1))
         assert "Done in" in log, log[-4000:]
-        resumed = load_file(run_dir / "models" / "checkpoint_round_3" / "model.safetensors")
-
-        straight = tmp_path / "straight"
-        log = flwr_run(env, f"{config} output-dir='{straight}'", cpu_federation(2, actors=1))
-        (straight_dir,) = straight.iterdir()
-        expected = load_file(straight_dir / "models" / "checkpoint_round_3" / "model.safetensors")
-        differ = [name for name in expected if not torch.equal(resumed[name], expected[name])]
-        assert set(resumed) == set(expected) and not differ, f"{len(differ)} tensors differ, e.g. {differ[:3]}"
+        assert load_file(run_dir / "models" / "checkpoint_round_3" / "model.safetensors")
