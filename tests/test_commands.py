@@ -18,7 +18,10 @@ def exit_code(call, argv: list[str]) -> int:
 
 
 COMMANDS = ["assets", "check", "certs", "superlink", "supernode", "export"]
-BENCHES = "learning, study, robust, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, hetero, scale, soak, privacy, secagg, container"
+BENCHES = (
+    "learning, study, robust, robustness, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, "
+    "hetero, scale, owners, soak, privacy, secagg, container"
+)
 
 
 def test_the_benchmark_list_is_zk0s():

@@ -245,8 +245,8 @@ class ValidatingStrategy(Strategy):
         """The node a reply answers for. The SuperLink answers for a node that went away (its
         heartbeat stopped) with an error from the SuperLink itself; the message it replies to says
         which node that was."""
-        asked = {msg.metadata.message_id: msg.metadata.dst_node_id for msg in self.sent}
-        return asked.get(reply.metadata.reply_to_message_id, reply.metadata.src_node_id)
+        asked = {msg.metadata.message_id: msg.metadata.dst_node_id for msg in self.sent if msg.metadata.message_id}
+        return asked.get(reply.metadata.reply_to_message_id or None, reply.metadata.src_node_id)
 
     def _named(self, node: int) -> str:
         client = self.node_clients.get(node)
