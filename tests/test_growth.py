@@ -5,16 +5,9 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+from tests.test_preflight import SERVER
 from zk0.data.assets import ensure_dataset
 from zk0.data.assets.datasets import SPECS, append_synthetic_episodes
-
-SERVER = """
-[tool.zk0.datasets.synth-so100-eval]
-repo_id = "zk0/synth_so100_eval"
-synthetic = true
-role = "server"
-cameras = { front = "camera1", wrist = "camera2" }
-"""
 
 
 def test_episodes_recorded_mid_run_are_checked_trained_on_and_the_held_out_ones_stay(tmp_path, isolated_logging):

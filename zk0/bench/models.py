@@ -11,7 +11,9 @@ federation's clients and server evaluate. ``zk0.bench.learning``, ``lora``, ``st
 
 from __future__ import annotations
 
+import argparse
 import json
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -19,8 +21,10 @@ from pathlib import Path
 
 import torch
 
+from zk0.artifacts.resume import find_resume_point
 from zk0.bench.stash import Stash
-from zk0.config import RunConfig
+from zk0.common.errors import positive
+from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data.assets import ensure_dataset
 from zk0.data.loaders import eval_loader, open_evaluation, open_metadata
 from zk0.data.registry import Registry
@@ -57,6 +61,38 @@ def federate(args, rounds: int, name: str, **keys) -> dict | None:
     if history is not None:
         history.update({"wall-s": time.perf_counter() - started, "config": run_config})
     return history
+
+
+def kept_federation(args, stash: Stash, clients: int, keys: dict, server_bundle) -> Weights:
+    """A federation of ``clients`` through ``flwr run`` (``keys``: its run config beyond ``federate``'s)
+    and its final global model, both kept in ``stash``: a stopped benchmark starts the federation
+    over, a finished one is taken from the folder."""
+    if not stash.has("federation"):
+        folder = stash.folder / "federation"
+        shutil.rmtree(folder, ignore_errors=True)  # what a stopped run left
+        sized = argparse.Namespace(**{**vars(args), "clients": clients})
+        history = federate(sized, args.rounds, str(folder.relative_to(Path(args.output_dir))), **keys)
+        if history is None:
+            raise SystemExit(1)
+        stash.figures("federation", lambda: {"run-dir": history["run-dir"], "wall-s": history["wall-s"]})
+    run_dir = stash.figures("federation", dict)["run-dir"]
+    return stash.weights("global", lambda: find_resume_point(run_dir).trainable(server_bundle).to_torch_state_dict())
+
+
+def add_sim_cube_recipe(parser, demos: int) -> None:
+    """The closed-loop benchmarks' shared options, at the documented sim-cube recipe's values
+    (docs/learning.md): ``demos`` demonstrations per owner, 20 rounds x 75 steps of ``tiny-128`` at
+    1e-3, 300 steps of personal fine-tuning, 100 seeded episodes per set-up, two training seeds."""
+    parser.add_argument("--seeds", type=int, nargs="+", default=[42, 43])
+    parser.add_argument("--demos", type=positive(int), default=demos, help="demonstrations per owner")
+    parser.add_argument("--rounds", type=positive(int), default=20)
+    parser.add_argument("--local-steps", type=positive(int), default=75)
+    parser.add_argument("--batch-size", type=positive(int), default=8)
+    parser.add_argument("--model", choices=OFFLINE_MODELS, default="tiny-128")
+    parser.add_argument("--lr", type=positive(float), default=1e-3)
+    parser.add_argument("--personal-steps", type=positive(int), default=300)
+    parser.add_argument("--sim-episodes", type=positive(int), default=100)
+    parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
 
 
 def server_rows(history: dict) -> list[dict]:
@@ -172,8 +208,9 @@ def closed_loop_all(
     client's own set-up), with that set's processors: ``plan`` names, for each column, the models to
     roll out there. ``conditions`` adds columns of other conditions (zk0.sim.tasks' names), each
     rolled out with an evaluation set's processors: column -> (evaluation set, conditions).
-    {model: {column: rates}}, each with its interval and its per-episode ``outcomes`` (1 = success, in seed order: every model meets the same ``episodes`` episodes,
-    seeded from ``seed``, so two can be compared pairwise). Each rollout's figures are kept in
+    {model: {column: rates}}, each with its interval and its per-episode ``outcomes`` (1 = success,
+    in seed order: every model meets the same ``episodes`` episodes, seeded from ``seed``, so two
+    can be compared pairwise). Each rollout's figures are kept in
     ``stash`` as it finishes, or taken from it; a set whose rollouts are all kept builds no envs."""
     from zk0.learning.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
 

@@ -21,18 +21,25 @@ stopped run, and sizes or seeds run as separate commands are tabled by one more 
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from pathlib import Path
 
 from zk0.artifacts.logs import native_output_to
-from zk0.artifacts.resume import find_resume_point
 from zk0.bench.client import write_json
-from zk0.bench.models import SERVER, Weights, closed_loop_all, evaluation_sets, federate, fine_tuned, generate
+from zk0.bench.models import (
+    SERVER,
+    Weights,
+    add_sim_cube_recipe,
+    closed_loop_all,
+    evaluation_sets,
+    fine_tuned,
+    generate,
+    kept_federation,
+)
 from zk0.bench.stash import Stash
 from zk0.common.errors import OneSentenceParser, positive
-from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.config import RunConfig
 from zk0.data.registry import load_registry
 from zk0.federation.client import build_client
 from zk0.learning.rates import mcnemar, wilson
@@ -57,20 +64,12 @@ def training_run(args: argparse.Namespace, registry: Path, seed: int) -> RunConf
 
 
 def global_model(args: argparse.Namespace, size: int, run: RunConfig, stash: Stash, server_bundle) -> Weights:
-    """The ``size``-owner federation's final global model (kept in ``stash``)."""
-    if not stash.has("federation"):
-        folder = stash.folder / "federation"
-        shutil.rmtree(folder, ignore_errors=True)  # what a stopped run left: the federation starts over
-        keys = {"registry": run.registry, "server-eval-dataset": run.server_eval_dataset, "model": run.model,
-                "seed": run.seed, "eval-frequency": run.num_server_rounds, "min-train-clients": args.per_round,
-                "fraction-train": args.per_round / size, "fraction-evaluate": 1.0}  # fmt: skip
-        sized = argparse.Namespace(**{**vars(args), "clients": size})  # federate's number of SuperNodes
-        history = federate(sized, run.num_server_rounds, str(folder.relative_to(Path(args.output_dir))), **keys)
-        if history is None:
-            raise SystemExit(1)
-        stash.figures("federation", lambda: {"run-dir": history["run-dir"], "wall-s": history["wall-s"]})
-    run_dir = stash.figures("federation", dict)["run-dir"]
-    return stash.weights("global", lambda: find_resume_point(run_dir).trainable(server_bundle).to_torch_state_dict())
+    """The ``size``-owner federation's final global model, ``--per-round`` owners sampled a round
+    (kept in ``stash``)."""
+    keys = {"registry": run.registry, "server-eval-dataset": run.server_eval_dataset, "model": run.model,
+            "seed": run.seed, "eval-frequency": run.num_server_rounds, "min-train-clients": args.per_round,
+            "fraction-train": args.per_round / size, "fraction-evaluate": 1.0}  # fmt: skip
+    return kept_federation(args, stash, size, keys, server_bundle)
 
 
 def run_size(args: argparse.Namespace, size: int, seed: int, unseen: list[str]) -> dict[str, dict]:
@@ -142,18 +141,9 @@ def build_parser() -> OneSentenceParser:
     parser = OneSentenceParser(prog="python -m zk0.bench owners", description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=positive(int), nargs="+", default=[4, 16, 64], help="owners per federation")
     parser.add_argument("--per-round", type=positive(int), default=4, help="owners sampled each round, every size")
-    parser.add_argument("--demos", type=positive(int), default=10, help="demonstrations per owner")
-    parser.add_argument("--rounds", type=positive(int), default=20)
-    parser.add_argument("--local-steps", type=positive(int), default=75)
-    parser.add_argument("--batch-size", type=positive(int), default=8)
-    parser.add_argument("--model", choices=OFFLINE_MODELS, default="tiny-128")
-    parser.add_argument("--lr", type=positive(float), default=1e-3)
-    parser.add_argument("--personal-steps", type=positive(int), default=300)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[42, 43])
+    add_sim_cube_recipe(parser, demos=10)
     parser.add_argument("--unseen", type=positive(int), default=4, help="owners in no run, whose set-ups judge")
     parser.add_argument("--personal-owners", type=positive(int), default=4, help="owners 0 to this - 1: personal")
-    parser.add_argument("--sim-episodes", type=positive(int), default=100)
-    parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-owners")
     parser.add_argument("--json", default=None, help="write the figures here")
     return parser

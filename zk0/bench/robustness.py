@@ -30,27 +30,26 @@ commands can be tabled together by one more with all of them.
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from pathlib import Path
 
 from zk0.artifacts.logs import native_output_to
-from zk0.artifacts.resume import find_resume_point
 from zk0.bench.client import write_json
 from zk0.bench.models import (
     SERVER,
     Weights,
+    add_sim_cube_recipe,
     centralised,
     closed_loop_all,
     evaluation_sets,
-    federate,
     fine_tuned,
     generate,
+    kept_federation,
 )
 from zk0.bench.stash import Stash
 from zk0.common.errors import OneSentenceParser, positive
-from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.config import RunConfig
 from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.federation.client import ClientSession, build_client
 from zk0.learning.policy import snapshot
@@ -89,18 +88,10 @@ def training_run(args: argparse.Namespace, seed: int, transforms: bool) -> RunCo
 
 def global_model(args: argparse.Namespace, run: RunConfig, stash: Stash, server_bundle) -> Weights:
     """The federation's final global model, trained through ``flwr run`` (kept in ``stash``)."""
-    if not stash.has("federation"):
-        folder = stash.folder / "federation"
-        shutil.rmtree(folder, ignore_errors=True)  # what a stopped run left: the federation starts over
-        keys = {"registry": run.registry, "server-eval-dataset": run.server_eval_dataset, "model": run.model,
-                "seed": run.seed, "eval-frequency": run.num_server_rounds, "proximal-mu": 0.0,
-                "server-optimiser": "nesterov", "image-transforms": run.image_transforms}  # fmt: skip
-        history = federate(args, run.num_server_rounds, str(folder.relative_to(Path(args.output_dir))), **keys)
-        if history is None:
-            raise SystemExit(1)
-        stash.figures("federation", lambda: {"run-dir": history["run-dir"], "wall-s": history["wall-s"]})
-    run_dir = stash.figures("federation", dict)["run-dir"]
-    return stash.weights("global", lambda: find_resume_point(run_dir).trainable(server_bundle).to_torch_state_dict())
+    keys = {"registry": run.registry, "server-eval-dataset": run.server_eval_dataset, "model": run.model,
+            "seed": run.seed, "eval-frequency": run.num_server_rounds, "proximal-mu": 0.0,
+            "server-optimiser": "nesterov", "image-transforms": run.image_transforms}  # fmt: skip
+    return kept_federation(args, stash, args.clients, keys, server_bundle)
 
 
 def train_models(args: argparse.Namespace, sessions: list[ClientSession], run: RunConfig, stash: Stash, columns: dict,
@@ -226,23 +217,14 @@ def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench robustness", description=__doc__.split("\n\n")[0])
     axes = [f"{axis}-{i}" for axis in OUTSIDE for i in range(10)]
-    parser.add_argument("--seeds", type=int, nargs="+", default=[42, 43])
-    parser.add_argument("--demos", type=positive(int), default=30, help="demonstrations per owner")
-    parser.add_argument("--rounds", type=positive(int), default=20)
-    parser.add_argument("--local-steps", type=positive(int), default=75)
-    parser.add_argument("--batch-size", type=positive(int), default=8)
-    parser.add_argument("--model", choices=OFFLINE_MODELS, default="tiny-128")
-    parser.add_argument("--lr", type=positive(float), default=1e-3)
-    parser.add_argument("--personal-steps", type=positive(int), default=300)
+    add_sim_cube_recipe(parser, demos=30)
     parser.add_argument("--clients", type=positive(int), default=4, help="the first this many owners of the registry")
-    parser.add_argument("--sim-episodes", type=positive(int), default=100)
     parser.add_argument("--conditions", nargs="+", choices=axes, default=[f"{axis}-0" for axis in OUTSIDE],
                         help="conditions outside the span, made from the server's set-up")  # fmt: skip
     parser.add_argument(
         "--owner-conditions", nargs="*", choices=axes, default=["dim-0", "bright-0"],
         help="conditions outside the span made from each owner's own set-up (personal models)",
     )  # fmt: skip
-    parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
     parser.add_argument("--output-dir", default="outputs/bench-robustness")
     parser.add_argument("--json", default=None, help="write the figures here")
     return parser
