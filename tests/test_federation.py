@@ -189,7 +189,7 @@ def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_e
     assert not differ, f"{len(differ)} tensors differ, e.g. {differ[:3]}"
     for client in ("client_0", "client_1"):
         said = (interrupted / "clients" / client / "client.log").read_text()
-        assert "Continuing the resumed run at batch 6 with the optimizer state of round 2." in said
+        assert "Continuing at batch 6 with the optimizer state this client kept after round 2." in said
         # the personal model is fine-tuned again from the same global model, data and seed: the same one
         personal = [load_file(run / "clients" / client / "models" / "personal" / "model.safetensors")
                     for run in (straight, interrupted)]  # fmt: skip
