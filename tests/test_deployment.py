@@ -212,11 +212,13 @@ def test_a_supernode_whose_disk_is_full_says_so_on_its_console_and_the_run_goes_
     assert "no usable update" not in server_log, "a client that said why is not named a second time"
 
 
-def wait_for(out: Path, pattern: str, run: subprocess.Popen, timeout: float = 300) -> None:
-    """Until ``pattern`` exists under ``out`` (the run still going)."""
+def wait_for(out: Path, pattern: str, run: subprocess.Popen, timeout: float = 900) -> None:
+    """Until ``pattern`` exists under ``out`` (the run still going; a round that waits out a dead
+    SuperNode's heartbeats took over 5 minutes beside the full suite)."""
     deadline = time.monotonic() + timeout
     while not list(out.glob(pattern)):
-        assert run.poll() is None and time.monotonic() < deadline, f"the run ended before {pattern}"
+        assert run.poll() is None, f"the run ended before {pattern}"
+        assert time.monotonic() < deadline, f"no {pattern} after {timeout:.0f} s"
         time.sleep(0.3)
 
 
