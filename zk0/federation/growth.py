@@ -14,6 +14,8 @@ the episodes it had.
 
 from __future__ import annotations
 
+import json
+
 from loguru import logger
 
 from zk0.config import RunConfig
@@ -29,10 +31,11 @@ def grown(split: DatasetSplit, run: RunConfig, policy_cfg, said: set[str]) -> Da
     entry = split.entry
     if entry.local_root() is None:  # a Hub dataset changes by revision, which is another dataset
         return None
-    meta = open_metadata(entry)
     known = split.meta.total_episodes
-    if meta.total_episodes <= known:
+    info = entry.local_root() / "meta" / "info.json"  # one small file a round; the metadata only when it grew
+    if json.loads(info.read_text()).get("total_episodes", 0) <= known:
         return None
+    meta = open_metadata(entry)
     new = list(range(known, meta.total_episodes))
     if run.dp == "record":  # DP-SGD's accounting is for the demonstrations it started with
         _say_once(said, f"Dataset {entry.name!r} has {len(new)} new episode(s); under dp='record' they wait for the "
