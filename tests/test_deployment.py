@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from datetime import datetime
 from pathlib import Path
 
 import psutil
@@ -225,8 +226,10 @@ def wait_for(out: Path, pattern: str, run: subprocess.Popen, timeout: float = 90
 def test_owners_join_leave_and_come_back_mid_run(tmp_path):
     """Five rounds on the Deployment Engine, min-train-clients=3. After round 1, robot-2 is killed
     and robot-4 stops for good: each is named once when its update does not come, round 2 keeps
-    the global model, and robot-2's warm worker exits with its SuperNode. After round 2, robot-3 registers for a dataset the run has not seen
-    and robot-2 is restarted; round 3 waits for three SuperNodes. robot-3 passes its pre-flight and
+    the global model, and robot-2's warm worker exits with its SuperNode. zk0's SuperNodes beat
+    every 10 s, so the server hears they are gone within 20 s of their last beat (Flower's 30 s beat
+    took 40 to 60 s). After round 2, robot-3 registers for a dataset the run has not seen and
+    robot-2 is restarted; round 3 waits for three SuperNodes. robot-3 passes its pre-flight and
     trains from round 3 on, and the round's JSON and report.html say so. robot-2 (its
     Context.state gone with its process) continues from the training state it kept after round 1
     and trains from round 3's global model; the run finishes without robot-4."""
@@ -239,6 +242,7 @@ def test_owners_join_leave_and_come_back_mid_run(tmp_path):
             env=fed.env, cwd=PROJECT_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )  # fmt: skip
         wait_for(out, "*/server/round_1.json", run)
+        stopped = datetime.now()
         fed.stop("robot-2", signal.SIGKILL)
         fed.stop("robot-4", signal.SIGTERM)
         wait_for(out, "*/server/round_2.json", run)
@@ -259,7 +263,10 @@ def test_owners_join_leave_and_come_back_mid_run(tmp_path):
     assert rounds[3]["joined"] == [3] and "joined" not in rounds[4]
     server_log = (run_dir / "server" / "server.log").read_text()
     for index in (1, 2):
-        assert len(re.findall(rf"no usable update from node \d+ \(client {index}\)", server_log)) == 1, server_log
+        named = re.findall(rf"^(\S+ \S+) .* no usable update from node \d+ \(client {index}\)", server_log, re.M)
+        assert len(named) == 1, server_log
+        heard = datetime.strptime(named[0], "%Y-%m-%d %H:%M:%S.%f") - stopped
+        assert heard.total_seconds() < 35, f"client {index} named {heard} after it stopped"
     assert "Round 2: 1 valid updates, fewer than min-train-clients=3; the global model is kept." in server_log
     restarted = client_log(fed, "robot-2", run_dir, 1)
     assert "Continuing at batch 2 with the optimizer state this client kept after round 1." in restarted

@@ -21,6 +21,8 @@ from flwr.supercore.exit import add_exit_handler
 from flwr.supercore.inflatable import inflatable_utils
 from flwr.supercore.superexec.executor import subprocess_executor
 from flwr.superlink.grid import InMemoryGrid
+from flwr.supercore import heartbeat
+from flwr.supernode import fleet_http_connection
 from flwr.supernode import start_client_internal as supernode_loop
 
 if TYPE_CHECKING:  # lerobot and torch load where they are used: `python -m zk0.deployment.supernode` needs neither
@@ -85,6 +87,14 @@ def shorten_supernode_waits(idle_s: float, reply_s: float) -> None:
     message (Flower sleeps a hard-coded 3 s) and look for its ClientApp's reply every ``reply_s``
     (0.5 s). Neither has a flag or variable; the loop's module-level ``time`` is replaced."""
     supernode_loop.time = _Waits({3: idle_s, 0.5: reply_s})
+
+
+def set_supernode_heartbeat(interval_s: float) -> None:
+    """Make this process's SuperNode tell the SuperLink it beats every ``interval_s`` and beat that
+    often; the SuperLink gives up on it after twice that. Flower's SuperNode hard-codes 30 s, so a
+    robot that lost power held its round for a minute; no flag or variable sets it."""
+    fleet_http_connection.HEARTBEAT_DEFAULT_INTERVAL = interval_s
+    heartbeat.HEARTBEAT_DEFAULT_INTERVAL = interval_s
 
 
 _PULLS = ("pull_objects", "pull_and_inflate_object_from_tree")
@@ -154,6 +164,9 @@ def check() -> None:
     loop = inspect.getsource(supernode_loop)
     if "\nimport time\n" not in loop or "time.sleep(3)" not in loop or "time.sleep(0.5)" not in loop:
         problems.append("flwr.supernode.start_client_internal's `import time`, time.sleep(3) and time.sleep(0.5)")
+    beats = inspect.getsource(fleet_http_connection) + inspect.getsource(heartbeat)
+    if beats.count("heartbeat_interval=HEARTBEAT_DEFAULT_INTERVAL") != 2 or "= HEARTBEAT_DEFAULT_INTERVAL -" not in beats:
+        problems.append("flwr.supernode.fleet_http_connection's and flwr.supercore.heartbeat's HEARTBEAT_DEFAULT_INTERVAL")
     superexec = ("\nimport subprocess\n", 'command = ["flower-superexec"]', "subprocess.Popen(command)")
     if not all(part in loop for part in superexec):
         problems.append('flwr.supernode.start_client_internal\'s `subprocess.Popen(["flower-superexec", ...])`')
