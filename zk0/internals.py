@@ -16,12 +16,12 @@ from functools import partial
 from importlib.metadata import version
 from typing import TYPE_CHECKING
 
+from flwr.supercore import heartbeat
 from flwr.supercore.constant import TASK_TYPE_TO_COMMAND, TaskType
 from flwr.supercore.exit import add_exit_handler
 from flwr.supercore.inflatable import inflatable_utils
 from flwr.supercore.superexec.executor import subprocess_executor
 from flwr.superlink.grid import InMemoryGrid
-from flwr.supercore import heartbeat
 from flwr.supernode import fleet_http_connection
 from flwr.supernode import start_client_internal as supernode_loop
 
