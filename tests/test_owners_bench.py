@@ -26,8 +26,9 @@ def test_the_table_pools_seeds_and_compares_every_size_with_the_smallest_on_the_
     unseen = rows[4, "global, unseen owners"]
     assert (unseen["episodes"], unseen["success-rate"]) == (8, 2 / 8)
     assert rows[4, "global, server's span"]["mcnemar-p-vs-smallest"] == 1.0
+    assert rows[64, "personal, own set-ups"]["episodes"] == 8, "every personal model's episodes, every seed"
     assert set(rows) == {(n, m) for n in (4, 64) for m in ("global, server's span", "global, unseen owners",
-                                                          "personal 0, own set-up")}  # fmt: skip
+                                                          "personal, own set-ups", "personal 0, own set-up")}  # fmt: skip
 
 
 def test_sizes_that_cannot_compare_are_refused_in_one_sentence(capsys):
@@ -62,7 +63,8 @@ def test_the_owners_benchmark_trains_each_size_and_judges_it_where_no_owner_was(
         history = json.loads(next((tmp_path / f"owners-{size}").rglob("metrics_history.json")).read_text())
         trained = [[i for i, c in r["clients"].items() if "train" in c] for r in history["rounds"] if r["round"]]
         assert [len(t) for t in trained] == [1], "one owner sampled a round, whatever the size"
-    assert len(figures["rows"]) == 2 * 3
+    assert len(figures["rows"]) == 2 * 4
+    assert (tmp_path / "owners.png").stat().st_size > 10_000, "the curve"
     assert main(argv) == 0
     again = capsys.readouterr().out
     assert "(kept from an earlier run)" in again

@@ -10,8 +10,9 @@ who took part in no run (generated indices above every run's), and the personal 
 0 to 3 (``--personal-owners``: in every run) in their own set-ups, each the global model fine-tuned
 ``--personal-steps`` on the owner's own data, as ``personal-steps`` does. Each rate pools every
 seed's episodes with its 95% interval, and McNemar's test compares each size with the smallest on
-the same episodes. Every model and rollout is kept in ``--output-dir`` (zk0.bench.stash): the same command continues a
-stopped run, and sizes or seeds run as separate commands are tabled by one more with all of them.
+the same episodes; the curve is drawn in ``<output-dir>/owners.png``. Every model and rollout is
+kept in ``--output-dir`` (zk0.bench.stash): the same command continues a stopped run, and sizes
+or seeds run as separate commands are tabled by one more with all of them.
 
     python -m zk0.bench owners [--sizes 4 16 64] [--per-round 4] [--demos 10] [--rounds 20]
         [--local-steps 75] [--model tiny-128] [--lr 1e-3] [--personal-steps 300] [--seeds 42 43]
@@ -24,6 +25,8 @@ import argparse
 import sys
 import time
 from pathlib import Path
+
+from matplotlib.figure import Figure
 
 from zk0.artifacts.logs import native_output_to
 from zk0.bench.client import write_json
@@ -101,28 +104,54 @@ def run_size(args: argparse.Namespace, size: int, seed: int, unseen: list[str]) 
     return closed_loop_all(plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash, where)
 
 
-def pooled(rolled: dict[int, dict[int, dict]], size: int, model: str, columns: list[str]) -> list[int]:
-    """Every seed's outcomes of ``model`` in ``columns`` in one list, in the same order for every size."""
-    return [o for seed in sorted(rolled[size]) for c in columns for o in rolled[size][seed][model][c]["outcomes"]]
+def pooled(rolled: dict[int, dict[int, dict]], size: int, where: list[tuple[str, str]]) -> list[int]:
+    """Every seed's outcomes of each (model, column) in ``where`` in one list, in the same order for
+    every size."""
+    return [o for seed in sorted(rolled[size]) for m, c in where for o in rolled[size][seed][m][c]["outcomes"]]
 
 
 def table(rolled: dict[int, dict[int, dict]], unseen: list[str], personal_owners: int) -> list[dict]:
     """Per size: the global model in the server's span and on the unseen owners, the personal models
-    in their owners' own set-ups, each pooled over seeds, with McNemar's test against the smallest size."""
+    in their owners' own set-ups (together and each), each pooled over seeds, with McNemar's test
+    against the smallest size."""
+    personal = [(f"personal {i}", f"client {i}") for i in range(personal_owners)]
     groups = {
-        "global, server's span": ("global", [SERVER]),
-        "global, unseen owners": ("global", unseen),
-        **{f"personal {i}, own set-up": (f"personal {i}", [f"client {i}"]) for i in range(personal_owners)},
+        "global, server's span": [("global", SERVER)],
+        "global, unseen owners": [("global", name) for name in unseen],
+        "personal, own set-ups": personal,
+        **{f"{model}, own set-up": [(model, column)] for model, column in personal},
     }
     smallest = min(rolled)
     rows = []
     for size in sorted(rolled):
-        for label, (model, columns) in groups.items():
-            got, base = pooled(rolled, size, model, columns), pooled(rolled, smallest, model, columns)
+        for label, where in groups.items():
+            got, base = pooled(rolled, size, where), pooled(rolled, smallest, where)
             low, high = wilson(sum(got), len(got))
             rows.append({"owners": size, "model": label, "success-rate": sum(got) / len(got), "low": low,
                          "high": high, "episodes": len(got), "mcnemar-p-vs-smallest": mcnemar(got, base)})  # fmt: skip
     return rows
+
+
+def chart(rows: list[dict], path: Path) -> None:
+    """Success against the number of owners with its 95% intervals: the global model in the server's
+    span and on the unseen owners, the personal models together (a log axis: sizes grow by factors)."""
+    fig = Figure(figsize=(7, 4.5))
+    axis = fig.subplots()
+    for label in ("global, server's span", "global, unseen owners", "personal, own set-ups"):
+        mine = [r for r in rows if r["model"] == label]
+        x = [r["owners"] for r in mine]
+        y = [100 * r["success-rate"] for r in mine]
+        below = [100 * max(0.0, r["success-rate"] - r["low"]) for r in mine]  # Wilson's bound at 0 of n: -1e-17
+        above = [100 * max(0.0, r["high"] - r["success-rate"]) for r in mine]
+        axis.errorbar(x, y, yerr=[below, above], marker="o", capsize=3, label=label)
+    axis.set_xscale("log", base=2)
+    axis.set_xticks(sorted({r["owners"] for r in rows}), labels=[str(n) for n in sorted({r["owners"] for r in rows})])
+    axis.set(xlabel="owners in the federation", ylabel="success (%)", ylim=(0, 100),
+             title="the same training, more owners: success with its 95% interval")  # fmt: skip
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize=8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
 
 
 def report(rows: list[dict], args: argparse.Namespace) -> None:
@@ -178,6 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     figures = {"settings": vars(args), "unseen": unseen, "rows": rows, "wall-s": time.perf_counter() - started,
                "rollouts": {str(n): {str(s): r for s, r in seeds.items()} for n, seeds in rolled.items()}}  # fmt: skip
     write_json(args.json, figures)
+    chart(rows, out / "owners.png")
     return 0
 
 
