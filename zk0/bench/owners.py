@@ -47,6 +47,7 @@ from zk0.data.registry import load_registry
 from zk0.federation.client import build_client
 from zk0.learning.rates import mcnemar, wilson
 
+SPAN, UNSEEN, PERSONAL = "global, server's span", "global, unseen owners", "personal, own set-ups"  # the curve's rows
 SETTINGS = ("per_round", "demos", "rounds", "local_steps", "batch_size", "model", "lr", "personal_steps", "wire_dtype",
             "personal_owners")  # fmt: skip
 
@@ -116,9 +117,9 @@ def table(rolled: dict[int, dict[int, dict]], unseen: list[str], personal_owners
     against the smallest size."""
     personal = [(f"personal {i}", f"client {i}") for i in range(personal_owners)]
     groups = {
-        "global, server's span": [("global", SERVER)],
-        "global, unseen owners": [("global", name) for name in unseen],
-        "personal, own set-ups": personal,
+        SPAN: [("global", SERVER)],
+        UNSEEN: [("global", name) for name in unseen],
+        PERSONAL: personal,
         **{f"{model}, own set-up": [(model, column)] for model, column in personal},
     }
     smallest = min(rolled)
@@ -137,15 +138,16 @@ def chart(rows: list[dict], path: Path) -> None:
     span and on the unseen owners, the personal models together (a log axis: sizes grow by factors)."""
     fig = Figure(figsize=(7, 4.5))
     axis = fig.subplots()
-    for label in ("global, server's span", "global, unseen owners", "personal, own set-ups"):
+    for label in (SPAN, UNSEEN, PERSONAL):
         mine = [r for r in rows if r["model"] == label]
         x = [r["owners"] for r in mine]
         y = [100 * r["success-rate"] for r in mine]
         below = [100 * max(0.0, r["success-rate"] - r["low"]) for r in mine]  # Wilson's bound at 0 of n: -1e-17
         above = [100 * max(0.0, r["high"] - r["success-rate"]) for r in mine]
         axis.errorbar(x, y, yerr=[below, above], marker="o", capsize=3, label=label)
+    sizes = sorted({r["owners"] for r in rows})
     axis.set_xscale("log", base=2)
-    axis.set_xticks(sorted({r["owners"] for r in rows}), labels=[str(n) for n in sorted({r["owners"] for r in rows})])
+    axis.set_xticks(sizes, labels=[str(n) for n in sizes])
     axis.set(xlabel="owners in the federation", ylabel="success (%)", ylim=(0, 100),
              title="the same training, more owners: success with its 95% interval")  # fmt: skip
     axis.grid(alpha=0.3)
