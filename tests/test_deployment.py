@@ -12,7 +12,9 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from datetime import datetime
 from pathlib import Path
 
@@ -20,7 +22,7 @@ import psutil
 import pytest
 
 from zk0.data.registry import PROJECT_ROOT
-from zk0.deployment.loopback import LoopbackFederation, loopback_federation, tool
+from zk0.deployment.loopback import LoopbackFederation, loopback_federation, tool, warm_workers_of
 
 pytestmark = pytest.mark.deployment
 
@@ -213,9 +215,41 @@ def test_a_supernode_whose_disk_is_full_says_so_on_its_console_and_the_run_goes_
     assert "no usable update" not in server_log, "a client that said why is not named a second time"
 
 
+@pytest.mark.allowance(300)
+def test_a_run_short_of_owners_ends_with_a_checkpoint_and_resumes(federation):
+    """robot-2 stops for good after round 1 of 3 (min-train-clients=2). Whether the SuperLink drops
+    it before round 2 samples or after (round 2 then goes on with what arrives), a round finds one
+    of the two owners it needs: the console says so once, and after wait-for-owners-s the run ends
+    in one sentence with the last round's model kept as a checkpoint (checkpoint-interval would
+    keep none yet). Once robot-2 is back, resuming that run folder finishes it with both owners."""
+    out = federation.root / "outputs-short"
+    config = "num-server-rounds=3 local-steps=2 batch-size=4 eval-batches=1 checkpoint-interval=5"
+    run, console = flwr_run(federation, f"{config} wait-for-owners-s=5 output-dir='{out}'")
+    wait_for(out, "*/server/round_1.json", run)
+    federation.stop("robot-2")
+    log = console.finish(timeout=600)
+    run_dir, record = history(out)
+    done = record["rounds"][-1]["round"]
+    assert done in (1, 2), log[-3000:]
+    waiting = f"Round {done + 1} waits for owners: 1 of the 2 it needs (min-train-clients=2) connected; the run ends "
+    assert log.count(waiting) == 1, log[-3000:]
+    ended = (
+        f"Round {done + 1} waited 5 s (wait-for-owners-s) with 1 of the 2 owners it needs connected; the run ends here "
+        f"with round {done}'s model kept as a checkpoint: ./train.sh --resume {run_dir} (or resume-from='{run_dir}') "
+        "continues it once they are back."
+    )
+    assert ended in log and "Traceback" not in log and run.returncode == 0, log[-3000:]
+    assert sorted(p.name for p in (run_dir / "models").glob("checkpoint_round_*")) == [f"checkpoint_round_{done}"]
+
+    federation.supernode("robot-2", ROBOTS["robot-2"], "--key", "robot-2")
+    resumed = federation.run_app(f"{config} wait-for-owners-s=300 resume-from='{run_dir}'", timeout=900)
+    _, record = history(out)
+    assert [r["round"] for r in record["rounds"]] == [0, 1, 2, 3], resumed.stdout[-3000:]
+    assert set(record["rounds"][3]["clients"]) == {"0", "1"}, "both owners trained the resumed run's last round"
+
+
 def wait_for(out: Path, pattern: str, run: subprocess.Popen, timeout: float = 900) -> None:
-    """Until ``pattern`` exists under ``out`` (the run still going; a round that waits out a dead
-    SuperNode's heartbeats took over 5 minutes beside the full suite)."""
+    """Until ``pattern`` exists under ``out`` (the run still going)."""
     deadline = time.monotonic() + timeout
     while not list(out.glob(pattern)):
         assert run.poll() is None, f"the run ended before {pattern}"
@@ -223,37 +257,89 @@ def wait_for(out: Path, pattern: str, run: subprocess.Popen, timeout: float = 90
         time.sleep(0.3)
 
 
+def wait_until(said: Callable[[], str], text: str, count: int = 1, timeout: float = 600) -> None:
+    """Until ``said()`` (a log read afresh) holds ``text`` ``count`` times."""
+    deadline = time.monotonic() + timeout
+    while said().count(text) < count:
+        assert time.monotonic() < deadline, f"{text!r} not said {count} time(s) within {timeout:.0f} s"
+        time.sleep(0.1)
+
+
+class Console:
+    """A ``flwr run --stream``'s console, read line by line while the run goes on."""
+
+    def __init__(self, run: subprocess.Popen):
+        self.run, self.lines = run, []
+        self.reader = threading.Thread(target=lambda: self.lines.extend(run.stdout), daemon=True)
+        self.reader.start()
+
+    def __call__(self) -> str:
+        return "".join(self.lines)
+
+    def finish(self, timeout: float) -> str:
+        self.run.wait(timeout=timeout)
+        self.reader.join(timeout=30)
+        return self()
+
+
+def flwr_run(fed: LoopbackFederation, config: str) -> tuple[subprocess.Popen, Console]:
+    run = subprocess.Popen(
+        [tool("flwr"), "run", str(PROJECT_ROOT), "lan", "--stream", "--run-config", config],
+        env=fed.env, cwd=PROJECT_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    return run, Console(run)
+
+
+def supernode_tree(fed: LoopbackFederation, name: str) -> set[int]:
+    """The pids of ``name``'s SuperNode and every process under it."""
+    parent = psutil.Process(fed.processes[name].pid)
+    return {parent.pid, *(child.pid for child in parent.children(recursive=True))}
+
+
+@pytest.mark.allowance(480)
 def test_owners_join_leave_and_come_back_mid_run(tmp_path):
-    """Five rounds on the Deployment Engine, min-train-clients=3. After round 1, robot-2 is killed
-    and robot-4 stops for good: each is named once when its update does not come, round 2 keeps
-    the global model, and robot-2's warm worker exits with its SuperNode. zk0's SuperNodes beat
-    every 10 s, so the server hears they are gone within 20 s of their last beat (Flower's 30 s beat
-    took 40 to 60 s). After round 2, robot-3 registers for a dataset the run has not seen and
-    robot-2 is restarted; round 3 waits for three SuperNodes. robot-3 passes its pre-flight and
-    trains from round 3 on, and the round's JSON and report.html say so. robot-2 (its
-    Context.state gone with its process) continues from the training state it kept after round 1
-    and trains from round 3's global model; the run finishes without robot-4."""
+    """Five rounds on the Deployment Engine, min-train-clients=3. In round 2 robot-2 is killed and
+    robot-4 stops for good, after each has received round 2's message (their warm workers held
+    from round 1's end, so neither can answer it, however fast the machine): each is named once
+    when its update does not come, round 2 keeps the global model, and robot-2's warm worker exits
+    with its SuperNode. zk0's SuperNodes beat every 10 s, so the server hears they are gone within
+    20 s of their last beat (Flower's 30 s beat took 40 to 60 s). Round 3 finds one owner of the
+    three it needs and says so on the console; then robot-3 registers for a dataset the run has not
+    seen and robot-2 is restarted. robot-3 passes its pre-flight and trains from round 3 on, and
+    the round's JSON and report.html say so. robot-2 (its Context.state gone with its process)
+    continues from the training state it kept after round 1 and trains from round 3's global model;
+    the run finishes without robot-4."""
     robots = {**ROBOTS, "robot-4": "synth-so101-sorting"}
     with loopback_federation(tmp_path / "fed", robots, later=("robot-3",)) as fed:
         out = tmp_path / "outputs"
         config = "num-server-rounds=5 local-steps=2 batch-size=4 eval-batches=1 min-train-clients=3 checkpoint-interval=1"
-        run = subprocess.Popen(
-            [tool("flwr"), "run", str(PROJECT_ROOT), "lan", "--stream", "--run-config", f"{config} output-dir='{out}'"],
-            env=fed.env, cwd=PROJECT_ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )  # fmt: skip
+        run, console = flwr_run(fed, f"{config} wait-for-owners-s=600 output-dir='{out}'")
         wait_for(out, "*/server/round_1.json", run)
+        leaving = ("robot-2", "robot-4")
+        held = {name: warm_workers_of(supernode_tree(fed, name)) for name in leaving}
+        assert all(len(workers) == 1 for workers in held.values()), held
+        for workers in held.values():
+            workers[0].suspend()
+        for name in leaving:  # round 2 sampled them while connected, whenever the SuperLink drops them
+            wait_until(lambda name=name: fed.log(name), "Receiving: train message", count=2)
         stopped = datetime.now()
-        fed.stop("robot-2", signal.SIGKILL)
-        fed.stop("robot-4", signal.SIGTERM)
+        os.killpg(fed.processes["robot-2"].pid, signal.SIGKILL)
+        os.killpg(fed.processes["robot-4"].pid, signal.SIGTERM)
+        for workers in held.values():
+            workers[0].resume()
+        fed.stop("robot-4")
         wait_for(out, "*/server/round_2.json", run)
         deadline = time.monotonic() + 30
         while workers_under(fed.root / "robot-2") and time.monotonic() < deadline:
             time.sleep(0.5)
         assert not workers_under(fed.root / "robot-2"), "a worker exits when its SuperNode is gone"
+        waiting = "Round 3 waits for owners: 1 of the 3 it needs (min-train-clients=3) connected; the run ends if "
+        wait_until(console, waiting)
         fed.register("robot-3")
         fed.supernode("robot-3", "synth-so101-reach", "--key", "robot-3")
         fed.supernode("robot-2", ROBOTS["robot-2"], "--key", "robot-2")
-        log, _ = run.communicate(timeout=900)
+        log = console.finish(timeout=900)
+    assert log.count(waiting) == 1, log[-3000:]
     run_dir, record = history(out)
     rounds = {r["round"]: r for r in record["rounds"]}
     assert list(rounds) == [0, 1, 2, 3, 4, 5], log[-3000:]
@@ -268,6 +354,7 @@ def test_owners_join_leave_and_come_back_mid_run(tmp_path):
         heard = datetime.strptime(named[0], "%Y-%m-%d %H:%M:%S.%f") - stopped
         assert heard.total_seconds() < 35, f"client {index} named {heard} after it stopped"
     assert "Round 2: 1 valid updates, fewer than min-train-clients=3; the global model is kept." in server_log
+    assert "Waiting for nodes to connect: 1 connected (minimum required: 3)" in server_log, "Flower's own line stays"
     restarted = client_log(fed, "robot-2", run_dir, 1)
     assert "Continuing at batch 2 with the optimizer state this client kept after round 1." in restarted
     page = (run_dir / "report.html").read_text().replace(' class="text"', "")

@@ -88,6 +88,7 @@ class RunConfig:
     compile: bool = False  # lerobot's compile_model; zk0.learning.policy keeps the compiled code in $ZK0_CACHE
     phase_timeout: float = 3600.0  # seconds the server waits for a round's train (or evaluate) replies
     round_deadline_s: float = 0.0  # a round's train replies not in by then are dropped (not round 1); 0 = off
+    wait_for_owners_s: float = 300.0  # a round with fewer than min-train-clients connected ends the run after this; 0 = never
     peft: str = "none"  # "lora": train and exchange lerobot's LoRA adapters instead of all trainable weights
     lora_rank: int = 16
     lora_alpha: float = 32.0
@@ -174,6 +175,7 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "max_skip_fraction": (0, 1, False),
     "phase_timeout": (0, None, True),
     "round_deadline_s": (0, None, False),
+    "wait_for_owners_s": (0, None, False),
     "lora_rank": (1, None, False),
     "lora_alpha": (0, None, True),
     "sim_eval_episodes": (0, None, False),

@@ -26,7 +26,7 @@ from zk0.artifacts.disk import bytes_needed, check_room, checkpoint_bytes, full_
 from zk0.artifacts.logs import add_file_sink, prints_to_log, say, setup_logging
 from zk0.artifacts.report import REPORT_FILE
 from zk0.artifacts.resume import ResumePoint, find_resume_point
-from zk0.artifacts.run_folder import History, new_run_dir, write_json
+from zk0.artifacts.run_folder import History, checkpoints, new_run_dir, write_json
 from zk0.artifacts.tracking import Tracker
 from zk0.common.errors import Zk0Error
 from zk0.config import RunConfig, from_run_config
@@ -36,6 +36,7 @@ from zk0.deployment.grid import PromptGrid
 from zk0.federation import stopping
 from zk0.federation.aggregation import ValidatingStrategy
 from zk0.federation.updates import array_signature
+from zk0.federation.waiting import OwnersGone, OwnersWatch
 from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
 from zk0.federation.robust import make_rule
 from zk0.federation.round_artifacts import RoundArtifacts
@@ -247,6 +248,7 @@ def main(grid: Grid, context: Context) -> None:
         averaging=run.averaging,
         privacy=privacy,
         rule=make_rule(run, optimiser.weighted_by_key),
+        owners=OwnersWatch(run.min_train_clients, run.wait_for_owners_s),
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own
     # machine, never at a path of the server's) and what both ends must share.
@@ -274,6 +276,10 @@ def main(grid: Grid, context: Context) -> None:
     except PrivacyBudgetSpent as err:
         artifacts.finish_writes()  # models/best may still be being written
         say("{}", err)  # the run did what its privacy budget allows: an end, not a failure
+    except OwnersGone as err:  # the operator's call to make, not a failure: the checkpoint resumes it
+        artifacts.finish_writes()
+        resume = f": ./train.sh --resume {run_dir} (or resume-from='{run_dir}') continues it once they are back"
+        say("{}{}.", err, resume if checkpoints(run_dir) else "")
     except Zk0Error as err:
         logger.error("zk0: {}", err)
         raise

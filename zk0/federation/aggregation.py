@@ -10,7 +10,9 @@ update more than ``update-clip`` times the others' median size is scaled down to
 (zk0.federation.robust), and with ``dp = "owner"`` Flower's DP mechanism clips, averages and noises them
 (zk0.federation.privacy); either way the wrapped strategy's server optimiser steps from the result; FedProx's
 ``proximal-mu`` goes into every train config, whatever the optimiser; federated evaluation runs
-every ``eval-frequency`` rounds; a resumed run keeps its round numbers; and each client's own
+every ``eval-frequency`` rounds; a round that finds too few owners connected says so and, after
+``wait-for-owners-s``, ends the run with a checkpoint to resume from (zk0.federation.waiting); a resumed
+run keeps its round numbers; and each client's own
 metrics and dataset statistics, and the end of every round, go to an observer
 (zk0.federation.round_artifacts) that writes them.
 
@@ -39,6 +41,7 @@ from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
 from zk0.federation.robust import combine
 from zk0.federation.server_optimisers import optimiser_name, optimiser_state
 from zk0.federation.updates import scaled_update, steps_taken, update_norm, update_problem
+from zk0.federation.waiting import OwnersGone, OwnersWatch
 from zk0.federation.wire import CLIENT, EVALUATE_ROUND, EVALUATION, KEEP_STATE, decode, encode
 
 
@@ -106,6 +109,7 @@ class ValidatingStrategy(Strategy):
         averaging: str = "samples",
         privacy: OwnerLevelDP | None = None,
         rule: FedAvg | None = None,
+        owners: OwnersWatch | None = None,
     ) -> None:
         self.inner = inner
         self.expected = expected
@@ -120,7 +124,9 @@ class ValidatingStrategy(Strategy):
         self.averaging = averaging  # updates of unequal steps: "fednova" (normalised by steps) or "samples"
         self.privacy = privacy  # owner-level DP: Flower's clip, mean and noise replace update-clip and the weights
         self.rule = rule  # a robust rule of Flower's (zk0.federation.robust) in place of the mean; None: the mean
+        self.owners = owners  # watches Flower's wait for enough connected owners; None: Flower's wait alone
         self.current: ArrayRecord | None = None  # the global model this round's updates start from
+        self.evaluation: MetricRecord | None = None  # the server's evaluation of the latest round's model
         self.sampled: set[int] = set()  # nodes asked to train this round
         self.sent: list[Message] = []  # this round's train instructions (the grid gives each its id as it sends it)
         self.node_clients: dict[int, int] = {}  # node id -> client (dataset) index, from their replies
@@ -151,6 +157,7 @@ class ValidatingStrategy(Strategy):
                 return None
             server_round = flower_round + self.round_offset
             evaluation = evaluate_fn(server_round, arrays) if evaluate_fn else None
+            self.evaluation = evaluation
             self.observer.round_ended(server_round, arrays, evaluation, self.server_state())
             if server_round and server_round < self.last_round and self.privacy and self.privacy.would_exceed():
                 self.stop_within_budget(server_round, arrays, evaluation)
@@ -179,7 +186,10 @@ class ValidatingStrategy(Strategy):
         config = ConfigRecord(
             {**config, "proximal-mu": self.proximal_mu, KEEP_STATE: self.checkpoints_in(server_round), **privacy}
         )  # FedProx's key, for any optimiser; a checkpoint round's clients keep their state to resume from
-        messages = list(self.inner.configure_train(server_round, arrays, config, grid))
+        try:
+            messages = list(self.inner.configure_train(server_round, arrays, config, self._watched(grid, server_round)))
+        except OwnersGone as err:
+            raise OwnersGone(f"{err}; {self.keep_for_resume(server_round - 1, arrays)}") from None
         wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
         for msg in messages:  # the optimiser keeps the fp32 model; clients get the wire dtype
             msg.content[self.inner.arrayrecord_key] = wire
@@ -189,6 +199,18 @@ class ValidatingStrategy(Strategy):
         if previous > self.round_offset and self.evaluates_in(previous):
             self._evaluate_first(messages, previous)
         return messages
+
+    def _watched(self, grid: Grid, server_round: int) -> Grid:
+        return self.owners.watching(grid, server_round) if self.owners else grid
+
+    def keep_for_resume(self, previous: int, arrays: ArrayRecord) -> str:
+        """Before the run ends for want of owners: round ``previous``'s model (``arrays``) kept as a
+        checkpoint, if no checkpoint holds it yet; what was kept, as the end of a sentence."""
+        if previous == 0:
+            return "no round has trained, so there is nothing to resume: start the run again once they are connected"
+        if previous > self.round_offset and not self.checkpoints_in(previous):
+            self.observer.checkpoint(previous, arrays, self.evaluation, self.server_state())
+        return f"the run ends here with round {previous}'s model kept as a checkpoint"
 
     def _evaluate_first(self, messages: list[Message], previous: int) -> None:
         """Ask a ``fraction-evaluate`` sample of the training clients to evaluate round ``previous`` first."""
@@ -409,9 +431,12 @@ class ValidatingStrategy(Strategy):
         server_round += self.round_offset
         if server_round != self.last_round:
             return []  # evaluated first thing in the next round's train message
-        return self.inner.configure_evaluate(
-            server_round, encode(arrays.to_torch_state_dict(), self.wire_dtype), config, grid
-        )
+        wire = encode(arrays.to_torch_state_dict(), self.wire_dtype)
+        try:
+            return self.inner.configure_evaluate(server_round, wire, config, self._watched(grid, server_round))
+        except OwnersGone as err:  # the server's evaluation and the last checkpoint still follow
+            logger.warning("{}; the owners do not evaluate the last round's model.", err)
+            return []
 
     def aggregate_evaluate(self, server_round: int, replies: Iterable[Message]) -> MetricRecord | None:
         server_round += self.round_offset
