@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.allowances import pytest_collection_modifyitems, pytest_runtest_makereport  # noqa: F401 (pytest's hooks)
+
 REPO = Path(__file__).resolve().parents[1]
 # One cache for the whole test session, shared by xdist workers (generation is locked).
 os.environ.setdefault("ZK0_CACHE", str(REPO / ".cache" / "zk0-tests"))

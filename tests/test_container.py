@@ -68,6 +68,7 @@ def test_the_quick_run_in_the_container_writes_the_hosts_outputs_as_the_host_use
         mse = history["rounds"][-1]["server-evaluate"]["action-mse"]
         assert f"server action MSE {mse:.4g}" in printed, printed[-2000:]
         assert printed.splitlines()[-1] == f"[zk0] Outputs: {run_dir}", "the host's path, not the container's"
+        assert f"[zk0] Report: {run_dir / 'report.html'}\n" in printed, "the host's path, not the container's"
     finally:
         shutil.rmtree(host, ignore_errors=True)
 
@@ -95,6 +96,7 @@ def compose(root: Path, env: dict[str, str], *args: str, timeout: float = 600) -
     return subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=timeout, check=False)
 
 
+@pytest.mark.allowance(300)
 def test_a_tls_federation_in_containers_runs_two_rounds_with_each_partys_files_in_its_own_folder(image, tmp_path):
     """deploy/compose.yaml, step by step as the README gives it: a SuperLink and two SuperNodes,
     each in its own container, TLS and SuperNode authentication, the run submitted with `flwr run`

@@ -133,6 +133,7 @@ def test_a_full_disk_leaves_no_half_file_and_reads_as_one_sentence(tmp_path):
         )
 
 
+@pytest.mark.allowance(240)
 @pytest.mark.e2e
 def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_stops_it_in_one_sentence(tmp_path):
     """The real `flwr run` with output-dir on a filesystem of its own (tmpfs). At 2 MB: refused before

@@ -230,6 +230,7 @@ def test_bad_run_config_fails_before_training_in_one_sentence(flower_env, tmp_pa
     assert not out.exists(), "nothing is written for a run that never starts"
 
 
+@pytest.mark.allowance(240)
 def test_bf16_exchange_learns_like_fp32(flower_env, tmp_path):
     """The learning check, small: bf16 on the wire ends within 10% of fp32's server action MSE
     (two rounds, the start and the end evaluated: each round costs both runs its fixed time)."""

@@ -40,6 +40,7 @@ def test_sizes_that_cannot_compare_are_refused_in_one_sentence(capsys):
     )
 
 
+@pytest.mark.allowance(360)
 @pytest.mark.e2e
 def test_the_owners_benchmark_trains_each_size_and_judges_it_where_no_owner_was(tmp_path, capsys):
     """One owner and two, one sampled a round: each federation through ``flwr run``, its global model

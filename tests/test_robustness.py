@@ -42,6 +42,7 @@ def test_the_table_pools_seeds_pairs_with_and_without_and_judges_the_targets():
                    "global in span within noise": True}  # fmt: skip
 
 
+@pytest.mark.allowance(360)
 @pytest.mark.e2e
 def test_the_robustness_benchmark_trains_rolls_out_and_continues_from_its_folder(tmp_path, capsys):
     """One owner, one round: the global model through ``flwr run``, the centralised and personal

@@ -234,6 +234,7 @@ def test_the_quick_runs_console_reads_in_one_glance(tmp_path):
     )
 
 
+@pytest.mark.allowance(240)
 @pytest.mark.e2e
 def test_ctrl_c_stops_the_run_at_once_and_prints_the_command_that_continues_it(tmp_path):
     """SIGINT to ./train.sh after round 1 of 6 short rounds (several fit in Flower's 5 s exit): no

@@ -93,6 +93,7 @@ def test_a_wide_step_takes_a_batch_from_every_client_each_normalised_as_its_clie
     assert wide.samples_from == {s.split.entry.name: 3 * batch for s in sessions}
 
 
+@pytest.mark.allowance(240)
 @pytest.mark.e2e
 def test_study_fills_every_row_and_column_evaluates_as_the_federation_does_and_continues(tmp_path, capsys):
     from zk0.bench.study import main
