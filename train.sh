@@ -272,11 +272,14 @@ keep_log() {
 # refusals, the summary), without colours. Simulated clients' lines (Ray prefixes them with
 # "(ClientAppActor pid=...)") stay in their logs: the server reports each refusal, naming the
 # client. --verbose shows every line.
+# In a container started by ./train.sh --docker, the paths it prints are the host's (on_host).
 for_a_person() {
+    local host=(-e '')
+    [ -z "${ZK0_HOST_OUTPUTS:-}" ] || host=(-e "s|$ZK0_ROOT/outputs/|$ZK0_HOST_OUTPUTS/|g")
     if [ "$verbose" = 1 ]; then
-        cat
+        sed -u "${host[@]}"
     else
-        sed -u -n -E -e 's/\x1b\[[0-9;]*m//g' -e '/^\([A-Za-z]+ pid=[0-9]+\) /d' -e '/^(\[zk0\] |zk0: )/p'
+        sed -u -n -E -e 's/\x1b\[[0-9;]*m//g' "${host[@]}" -e '/^\([A-Za-z]+ pid=[0-9]+\) /d' -e '/^(\[zk0\] |zk0: )/p'
     fi
 }
 
