@@ -166,9 +166,13 @@ fi
 source "$(dirname "$0")/scripts/setup.sh"
 zk0_setup
 cd "$ZK0_ROOT"
-# One validated override string (preset + output folder + the user's overrides, later wins).
-run_config="$(zk0 check --print "${preset[@]}" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}")" || exit 2
-flwr_command=(flwr run . local --stream --federation-config "configs/federation/$mode.toml" --run-config "$run_config")
+# One validated override string (preset + output folder + the user's overrides, later wins), and the
+# mode's federation config with the clients that train at once sized to the memory available.
+checked="$(zk0 check --print "${preset[@]}" --run-config "output-dir='$ZK0_ROOT/outputs'" "${overrides[@]}" \
+    --federation-config "configs/federation/$mode.toml")" || exit 2
+run_config="${checked%%$'\n'*}"
+federation="${checked#*$'\n'}"
+flwr_command=(flwr run . local --stream --federation-config "$federation" --run-config "$run_config")
 [ "$print_only" = 0 ] || launch "${flwr_command[@]}"
 export ZK0_VERBOSE="$verbose" # the ServerApp and ClientApps read it (through the SuperLink flwr run starts)
 zk0 assets --run-config "$run_config" >/dev/null

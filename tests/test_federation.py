@@ -343,3 +343,28 @@ def test_flwr_stop_ends_the_run_at_once(flower_env, tmp_path):
     late = {name: round(s, 2) for name, s in after.items() if s > 0.5}  # a write already past its check may end
     assert not late, f"written this many seconds after the signal: {late}"
     assert "the server writes nothing more" in server_log.read_text()
+
+
+@pytest.mark.allowance(420)
+def test_the_full_size_model_takes_a_step_checkpoints_and_loads_in_lerobot(flower_env, tmp_path):
+    """The path every owner with a GPU takes, stepped on the CPU: SmolVLA on a SmolVLM2-500M-shaped
+    backbone (random weights), one client, one local step at batch 1. Its update is the 199.79 MB
+    docs/performance.md gives for bf16 on the wire, the round is checkpointed, and models/best
+    loads with lerobot's from_pretrained with every one of the 450,046,176 parameters."""
+    from zk0.data.assets import FULL_SIZE_BACKBONE, ensure_backbone
+
+    ensure_backbone(kind=FULL_SIZE_BACKBONE)  # what `zk0 assets` makes once per machine
+    out = tmp_path / "outputs"
+    config = "model='full-size' num-server-rounds=1 local-steps=1 batch-size=1 eval-batches=1 min-train-clients=1"
+    log = flwr_run(flower_env, f"{config} output-dir='{out}'", cpu_federation(1, actors=1))
+    runs = list(out.iterdir()) if out.exists() else []
+    assert len(runs) == 1, log[-3000:]
+    rounds = json.loads((runs[0] / "server" / "metrics_history.json").read_text())["rounds"]
+    assert [r["round"] for r in rounds] == [0, 1], log[-3000:]
+    train = rounds[1]["clients"]["0"]["train"]
+    assert train["local-steps"] == 1 and train["num-examples"] == 1
+    assert abs(train["update-bytes"] / 199.79e6 - 1) < 0.001, train["update-bytes"]
+    assert (runs[0] / "models" / "checkpoint_round_1" / "model.safetensors").is_file()
+    policy = SmolVLAPolicy.from_pretrained(runs[0] / "models" / "best")
+    assert sum(p.numel() for p in policy.parameters()) == 450_046_176
+    assert "OutOfMemoryError" not in log and "Traceback" not in log

@@ -87,6 +87,23 @@ def _merged_run(preset: str | None, run_config: list[str]) -> tuple[RunConfig, d
     return from_run_config({**flatten_dict(table), **overrides}), overrides
 
 
+def _sized_federation(run: RunConfig, path: Path) -> str:
+    """A simulation's federation config file as one ``--federation-config`` string, with the clients
+    that train at once sized to the memory available (a sentence on stderr when it lowered them)."""
+    from zk0.learning.memory import sized_federation
+
+    try:
+        federation = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError):
+        raise Zk0Error(
+            f"--federation-config got {str(path)!r}; expected a readable TOML file such as configs/federation/cpu.toml."
+        ) from None
+    sized, said = sized_federation(run, federation)
+    if said:
+        print(f"[zk0] {said}", file=sys.stderr)
+    return " ".join(f"{key}={_toml_value(value)}" for key, value in sized.items())
+
+
 def _check(args: argparse.Namespace) -> int:
     """Validate a preset and run-config overrides the way the apps will, before anything starts."""
     run, overrides = _merged_run(args.preset, args.run_config)
@@ -94,6 +111,9 @@ def _check(args: argparse.Namespace) -> int:
     registry.get(run.server_eval_dataset)
     if args.print:  # one flat override string for `flwr run --run-config`; datasets are not opened
         print(" ".join(f"{key}={_toml_value(value)}" for key, value in overrides.items()))
+    if args.federation_config:  # the simulation's config, sized to the memory available now
+        print(_sized_federation(run, Path(args.federation_config)))
+    if args.print or args.federation_config:
         return 0
     from zk0.learning.preflight import check_federation  # torch and lerobot: only when datasets are checked
 
@@ -215,6 +235,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     check.add_argument("--preset", help="a preset name (configs/presets/<name>.toml) or file, applied before overrides")
     check.add_argument("--print", action="store_true", help="print the merged overrides as one --run-config string")
+    check.add_argument(
+        "--federation-config",
+        metavar="FILE",
+        help="print this simulation config (configs/federation/*.toml) as one --federation-config string, with "
+        "the clients that train at once sized to the memory available; refuse if one does not fit",
+    )
     check.set_defaults(func=_check)
 
     certs = commands.add_parser("certs", help="create a CA, the SuperLink certificate and SuperNode key pairs")

@@ -48,6 +48,7 @@ from zk0.learning.policy import (
     set_trainable,
     trainable_tensors,
 )
+from zk0.learning.memory import room_for_another
 from zk0.learning.preflight import check_dataset, model_inputs
 from zk0.learning.record_privacy import PrivateTrainer
 from zk0.learning.training import LocalTrainer, evaluate
@@ -136,6 +137,8 @@ _SESSIONS: dict[tuple[int, int], ClientSession] = {}  # least recently used firs
 # otherwise keep every owner it ever met (a full-size SmolVLA each). Four covers the quick
 # federation's owners, so a simulation of four rebuilds nothing; an owner met again after being
 # dropped is rebuilt and continues from its node's Context.state (zk0.federation.client._catch_up).
+# Where the memory available would not hold one more (a full-size SmolVLA on a CPU machine), a
+# process drops those it keeps before it builds another (zk0.learning.memory.room_for_another).
 SESSIONS_KEPT = 4
 _FRESH_PROCESS = True  # the first message a process handles also paid for the process's start
 
@@ -146,10 +149,10 @@ def session_for(context: Context, config: ConfigRecord) -> tuple[ClientSession, 
     if key in _SESSIONS:
         _SESSIONS[key] = _SESSIONS.pop(key)  # now the most recently used
         return _SESSIONS[key], 0.0
-    release_sessions(keep_run=context.run_id, keep=SESSIONS_KEPT - 1)
+    run = from_run_config(dict(context.run_config))
+    release_sessions(keep_run=context.run_id, keep=SESSIONS_KEPT - 1 if room_for_another(run) else 0)
     started = time.perf_counter()
     setup_logging("client")
-    run = from_run_config(dict(context.run_config))
     registry = load_registry(run.registry)
     index = client_index(registry, dict(context.node_config))
     entry = registry.clients[index]
