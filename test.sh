@@ -22,9 +22,9 @@ zk0_ensure_chromium
 # The whole suite runs the image: build it first (or find it current), outside pytest's time.
 # (Given arguments, the container test builds it itself when it is among the tests chosen.)
 if [ $# -eq 0 ] && zk0_ensure_podman; then
-    export CONTAINERS_CONF="$(zk0_containers_conf)"
     zk0_log "Building the zk0 image with podman (first time on a machine: minutes, most of it pip fetching torch; then seconds)..."
-    zk0_ensure_image >"$fresh_tmp/image-build.log" 2>&1 || zk0_log "Building the image failed; the container test says why."
+    CONTAINERS_CONF="$(zk0_containers_conf)" zk0_ensure_image >"$fresh_tmp/image-build.log" 2>&1 ||
+        zk0_log "Building the image failed; the container test says why."
 fi
 cd "$ZK0_ROOT"
 export HF_HUB_OFFLINE=1

@@ -54,9 +54,10 @@ def test_the_quick_run_in_the_container_writes_the_hosts_outputs_as_the_host_use
     folder = f"container-test-{uuid.uuid4().hex[:8]}"
     host = PROJECT_ROOT / "outputs" / folder
     try:
+        as_a_user = {k: v for k, v in image.items() if k not in {"CONTAINERS_CONF", "ZK0_ENGINE"}}  # as a user runs it
         done = subprocess.run(
             [str(PROJECT_ROOT / "train.sh"), "--docker", "-r", f"output-dir='/workspace/outputs/{folder}'"],
-            env=image, capture_output=True, text=True, timeout=900, check=False,
+            env=as_a_user, capture_output=True, text=True, timeout=900, check=False,
         )  # fmt: skip
         printed = done.stdout + done.stderr
         assert done.returncode == 0, printed[-4000:]
@@ -114,7 +115,11 @@ def test_a_tls_federation_in_containers_runs_two_rounds_with_each_partys_files_i
     for party in ("server", "alice", "bob"):
         for folder in ("outputs", "cache"):
             (root / party / folder).mkdir(parents=True)
-    env = {**image, "ZK0_UID": str(os.getuid()), "ZK0_GID": str(os.getgid())}
+    env = {k: v for k, v in image.items() if k not in {"ZK0_UID", "ZK0_GID"}}
+    unset = compose(root, env, "run", "--rm", "flwr", "supernode", "list", "zk0")
+    assert unset.returncode != 0 and "unset-ZK0_UID" in unset.stdout + unset.stderr, "named, not a traceback"
+    assert "Traceback" not in unset.stdout + unset.stderr
+    (root / ".env").write_text(f"ZK0_UID={os.getuid()}\nZK0_GID={os.getgid()}\n")  # as the README writes it
     try:
         assert compose(root, env, "up", "-d", "superlink").returncode == 0
         deadline = time.monotonic() + 180

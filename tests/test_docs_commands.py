@@ -43,6 +43,7 @@ ELSEWHERE = {
     "tmux ": "attaching to a detached run",
     "tail -f": "following a log",
     "export ": "sets an environment variable for the commands after it",
+    "printf 'ZK0_UID": "writes the compose federation's .env, as tests/test_container.py does",
 }
 
 
