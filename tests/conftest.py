@@ -50,6 +50,17 @@ def offline_assets():
 
 
 @pytest.fixture(scope="session")
+def flower_env(tmp_path_factory):
+    """One private Flower home and local simulation SuperLink for every `flwr run` of this test
+    worker (stopped at its end): a SuperLink's start is seconds of every federation otherwise."""
+    from zk0.deployment.simulation import local_federation
+
+    with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
+        env.pop("HF_TOKEN", None)  # the Hub push stays offline: staged, not uploaded
+        yield env
+
+
+@pytest.fixture(scope="session")
 def registry():
     from zk0.data.registry import load_registry
 

@@ -18,7 +18,7 @@ from zk0.artifacts.run_folder import save_checkpoint
 from zk0.common.errors import Zk0Error
 from zk0.config import LORA_FULL_MODULES, ConfigError, RunConfig, from_run_config
 from zk0.data.loaders import open_metadata, prepare_batch
-from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+from zk0.deployment.simulation import cpu_federation, flwr_run
 from zk0.federation.client import build_client
 from zk0.federation.wire import encode
 from zk0.learning.policy import backbone_fingerprint, build_policy, set_trainable, trainable_tensors
@@ -151,15 +151,14 @@ def test_checkpoint_is_a_plain_lerobot_policy_with_the_adapters_merged(start, re
 
 
 @pytest.mark.e2e
-def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(start, registry, tmp_path):
+def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(start, registry, flower_env, tmp_path):
     """2 clients x 2 rounds of `flwr run` with peft = "lora" from a pretrained start."""
     out = tmp_path / "outputs"
-    with local_federation(tmp_path / "flwr-home") as env:
-        log = flwr_run(
-            env,
-            f"num-server-rounds=2 local-steps=3 batch-size=4 peft='lora' model='{start}' output-dir='{out}'",
-            cpu_federation(num_supernodes=2, actors=1),
-        )
+    log = flwr_run(
+        flower_env,
+        f"num-server-rounds=2 local-steps=3 batch-size=4 peft='lora' model='{start}' output-dir='{out}'",
+        cpu_federation(num_supernodes=2, actors=1),
+    )
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1 and "Done in " in log, log[-3000:]
     history = json.loads((runs[0] / "server" / "metrics_history.json").read_text())
@@ -192,14 +191,13 @@ def test_lora_federation_sends_only_adapters_and_checkpoints_a_loadable_policy(s
 
 
 @pytest.mark.e2e
-def test_a_federation_with_targets_that_match_nothing_says_so_in_one_sentence(start, tmp_path):
+def test_a_federation_with_targets_that_match_nothing_says_so_in_one_sentence(start, flower_env, tmp_path):
     """The ServerApp builds the global model before round 1: lerobot's refusal reaches the log as one sentence."""
-    with local_federation(tmp_path / "flwr-home") as env:
-        log = flwr_run(
-            env,
-            f"peft='lora' lora-targets='no_such_module' model='{start}' output-dir='{tmp_path / 'outputs'}'",
-            cpu_federation(num_supernodes=2, actors=1),
-        )
+    log = flwr_run(
+        flower_env,
+        f"peft='lora' lora-targets='no_such_module' model='{start}' output-dir='{tmp_path / 'outputs'}'",
+        cpu_federation(num_supernodes=2, actors=1),
+    )
     assert "zk0: lerobot cannot add LoRA adapters with these lora-* keys: " in log, log[-3000:]
     assert "Done in " not in log
 

@@ -135,7 +135,9 @@ def test_a_full_disk_leaves_no_half_file_and_reads_as_one_sentence(tmp_path):
 
 @pytest.mark.allowance(240)
 @pytest.mark.e2e
-def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_stops_it_in_one_sentence(tmp_path):
+def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_stops_it_in_one_sentence(
+    flower_env, tmp_path
+):
     """The real `flwr run` with output-dir on a filesystem of its own (tmpfs). At 2 MB: refused before
     round 1 in one sentence naming the folder, what the run needs and what is free. Made 512 MB and
     filled by another program once round 1's checkpoint is written: the run stops with zk0's
@@ -146,10 +148,11 @@ def test_a_disk_too_small_is_refused_before_round_1_and_one_that_fills_mid_run_s
 
     from safetensors.torch import load_file
 
-    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run
 
     config = "num-server-rounds=3 local-steps=2 batch-size=4 checkpoint-interval=1 eval-batches=1"
-    with small_disk(tmp_path / "disk", 2) as disk, local_federation(tmp_path / "flwr-home") as env:
+    env = flower_env
+    with small_disk(tmp_path / "disk", 2) as disk:
         log = flwr_run(env, f"{config} output-dir='{disk}'", cpu_federation(2, actors=1))
         (refused,) = disk.iterdir()
         assert log.count(f"zk0: {str(refused)!r} needs about ") == 1, log[-4000:]

@@ -19,7 +19,7 @@ from zk0.bench.robust import scaled_client_app
 from zk0.config import RunConfig
 from zk0.data.loaders import open_metadata
 from zk0.data.registry import load_registry
-from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+from zk0.deployment.simulation import cpu_federation, flwr_run
 from zk0.learning.policy import build_policy, get_trainable
 
 pytestmark = pytest.mark.e2e
@@ -27,14 +27,6 @@ pytestmark = pytest.mark.e2e
 # Two clients served by one Ray actor: which actor runs a node's message is up to Ray, so one
 # actor makes "each client builds its policy once per run" exact.
 ONE_ACTOR = cpu_federation(num_supernodes=2, actors=1)
-
-
-@pytest.fixture(scope="module")
-def flower_env(tmp_path_factory):
-    """A private Flower home and SuperLink for this module's runs (stopped afterwards)."""
-    with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
-        env.pop("HF_TOKEN", None)  # the Hub push stays offline: staged, not uploaded
-        yield env
 
 
 # Three short rounds, a checkpoint after each: every artifact is checked on this run, and the resume

@@ -222,9 +222,9 @@ def test_evaluation_past_max_skip_fraction_fails_in_one_sentence(good, tmp_path)
 
 
 @pytest.mark.e2e
-def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkpoint(good, tmp_path):
+def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkpoint(good, flower_env, tmp_path):
     """The real `flwr run`: one sentence per bad dataset, no traceback, exit code, nothing written."""
-    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run
 
     seven = write_dataset(tmp_path / "seven", joints=7)
     empty = copy_of(good, tmp_path)
@@ -237,8 +237,7 @@ def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkp
         + f'[tool.zk0.datasets.other]\nrepo_id = "someone/copy"\nroot = "{empty}"\ncameras = {{ front = "camera1" }}\n'
     )
     out = tmp_path / "outputs"
-    with local_federation(tmp_path / "flwr-home") as env:
-        log = flwr_run(env, f"registry='{registry_file}' output-dir='{out}'", cpu_federation(2, actors=1))
+    log = flwr_run(flower_env, f"registry='{registry_file}' output-dir='{out}'", cpu_federation(2, actors=1))
     first = EXPECTED["seven-joints"]
     second = EXPECTED["empty-video"].format(root=empty).replace("'owner'", "'other'")
     assert log.count(f"zk0: {first}") == 1 and log.count(f"zk0: {second}") == 1, log[-4000:]
@@ -248,10 +247,10 @@ def test_a_simulation_whose_every_client_is_refused_stops_without_done_or_checkp
 
 
 @pytest.mark.e2e
-def test_a_first_round_that_cannot_train_stops_the_run_with_each_clients_sentence(good, tmp_path):
+def test_a_first_round_that_cannot_train_stops_the_run_with_each_clients_sentence(good, flower_env, tmp_path):
     """Videos that pass every metadata check but cannot be decoded: every client's round fails,
     so the run stops after round 1 with a non-zero exit, each sentence once, and no checkpoint."""
-    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run
 
     entries = ""
     for name in ("garbled-a", "garbled-b"):
@@ -262,8 +261,7 @@ def test_a_first_round_that_cannot_train_stops_the_run_with_each_clients_sentenc
     registry_file = tmp_path / "registry.toml"
     registry_file.write_text(SERVER + entries)
     out = tmp_path / "outputs"
-    with local_federation(tmp_path / "flwr-home") as env:
-        log = flwr_run(env, f"registry='{registry_file}' output-dir='{out}'", cpu_federation(2, actors=1))
+    log = flwr_run(flower_env, f"registry='{registry_file}' output-dir='{out}'", cpu_federation(2, actors=1))
     for index, name in enumerate(("garbled-a", "garbled-b")):
         sentence = (
             f"Round 1: Client {index} ({name}): Dataset '{name}': 3 of 3 training batches could not be decoded, "

@@ -7,18 +7,12 @@ import json
 import dp_accounting
 import pytest
 
-from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+from zk0.deployment.simulation import cpu_federation, flwr_run
 
 pytestmark = pytest.mark.e2e
 
 ONE_ACTOR = cpu_federation(num_supernodes=2, actors=1)
 SHORT = "local-steps=2 batch-size=4 eval-batches=1"
-
-
-@pytest.fixture(scope="module")
-def flower_env(tmp_path_factory):
-    with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
-        yield env
 
 
 def history(run_dir) -> list[dict]:

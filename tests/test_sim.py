@@ -275,21 +275,20 @@ def test_a_machine_that_cannot_render_says_so_in_one_sentence():
 
 
 @pytest.mark.e2e
-def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_model(tmp_path):
+def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_model(flower_env, tmp_path):
     """Two sim clients x 1 round through `flwr run`: success rates in the round JSON and history, a
     video, a success chart, models/best; then lerobot's `lerobot-eval` runs models/best on the env."""
-    from zk0.deployment.simulation import cpu_federation, flwr_run, local_federation
+    from zk0.deployment.simulation import cpu_federation, flwr_run
 
     for entry in load_registry(REGISTRY).entries:  # the server checks every client dataset before round 1
         ensure_dataset(entry.name)
     out = tmp_path / "outputs"
-    with local_federation(tmp_path / "flwr-home") as flower_env:
-        log = flwr_run(
-            flower_env,
-            f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 model='tiny-128' "
-            f"num-server-rounds=1 local-steps=2 batch-size=2 eval-batches=1 output-dir='{out}'",
-            cpu_federation(num_supernodes=2, actors=1),
-        )
+    log = flwr_run(
+        flower_env,
+        f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 model='tiny-128' "
+        f"num-server-rounds=1 local-steps=2 batch-size=2 eval-batches=1 output-dir='{out}'",
+        cpu_federation(num_supernodes=2, actors=1),
+    )
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]
     server = runs[0] / "server"
