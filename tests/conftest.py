@@ -50,14 +50,15 @@ def offline_assets():
 
 
 @pytest.fixture(scope="session")
-def flower_env(tmp_path_factory):
-    """One private Flower home and local simulation SuperLink for every `flwr run` of this test
-    worker (stopped at its end): a SuperLink's start is seconds of every federation otherwise."""
-    from zk0.deployment.simulation import local_federation
+def flower_env():
+    """The private local simulation SuperLink of this test worker, which the benchmarks' federations
+    run on too (zk0.deployment.simulation.process_superlink): a SuperLink's start is seconds of every
+    federation otherwise."""
+    from zk0.deployment.simulation import process_superlink
 
-    with local_federation(tmp_path_factory.mktemp("flwr-home")) as env:
-        env.pop("HF_TOKEN", None)  # the Hub push stays offline: staged, not uploaded
-        yield env
+    env = process_superlink()
+    env.pop("HF_TOKEN", None)  # the Hub push stays offline: staged, not uploaded
+    return env
 
 
 @pytest.fixture(scope="session")

@@ -12,8 +12,10 @@ the command `flwr run` would use and a patient deadline, and `flwr run` finds it
 
 from __future__ import annotations
 
+import atexit
 import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -21,7 +23,7 @@ import tempfile
 import time
 import urllib.request
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import AbstractContextManager, ExitStack, contextmanager
 from pathlib import Path
 
 import psutil
@@ -150,20 +152,42 @@ def flwr_run(
     return done.stdout + done.stderr
 
 
+_PROCESS_SUPERLINK: dict[str, str] = {}
+
+
+def process_superlink() -> dict[str, str]:
+    """The environment of this process's own private SuperLink, started on first use and stopped
+    when the process exits: a benchmark's federations (and a test worker's) share it, instead of
+    starting a SuperLink for each."""
+    if not _PROCESS_SUPERLINK:
+        home = Path(tempfile.mkdtemp(prefix="zk0-flwr-"))
+        federation = ExitStack()
+        _PROCESS_SUPERLINK.update(federation.enter_context(local_federation(home)))
+        federation.callback(shutil.rmtree, home, ignore_errors=True)
+        atexit.register(federation.close)
+    return dict(_PROCESS_SUPERLINK)
+
+
 def run_federation(
     run_config: str,
     clients: int,
     output_dir: Path,
     name: str,
     app: Path = PROJECT_ROOT,
-    watch: Callable[[dict[str, str]], AbstractContextManager] = lambda env: nullcontext(),
+    watch: Callable[[dict[str, str]], AbstractContextManager] | None = None,
 ) -> dict | None:
-    """`flwr run` on a private SuperLink with ``clients`` CPU clients; the run's metric history.
-    ``watch(env)`` is entered while it runs (zk0.bench.scale samples the processes' memory).
+    """`flwr run` with ``clients`` CPU clients on this process's SuperLink, or, with ``watch``, on
+    a SuperLink of its own: ``watch(env)`` is entered while it runs (zk0.bench.scale samples the
+    memory of the processes under that SuperLink, this run's alone); the run's metric history.
 
     For benchmarks: on failure it prints the end of Flower's log and one sentence, and returns None.
     """
-    with tempfile.TemporaryDirectory() as home, local_federation(Path(home)) as env, watch(env):
+    with ExitStack() as stack:
+        if watch is None:
+            env = process_superlink()
+        else:
+            env = stack.enter_context(local_federation(Path(stack.enter_context(tempfile.TemporaryDirectory()))))
+            stack.enter_context(watch(env))
         log = flwr_run(env, f"{run_config} output-dir='{output_dir}'", cpu_federation(clients), app=app)
     runs = sorted(output_dir.glob("*/server/metrics_history.json"), key=lambda p: p.stat().st_mtime)
     if not runs or "Exit Code: " in log:
