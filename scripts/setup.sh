@@ -115,12 +115,23 @@ zk0_ensure_image() {
         }
         rm -rf "$dir"
     fi
-    zk0_build_image "$ZK0_ROOT" zk0
+    # An image labelled with this folder's build context is current: a second `podman build`,
+    # even one its cache answers, walks the context again (and once spun both cores for minutes).
+    [ "$(podman image inspect zk0 --format '{{ index .Labels "zk0.context" }}' 2>/dev/null)" = "$(zk0_context_hash "$ZK0_ROOT")" ] ||
+        zk0_build_image "$ZK0_ROOT" zk0
 }
 
-# podman build of the project folder $1 as image $2, on the base zk0_ensure_image makes.
+# A digest of what `podman build` of the project folder $1 copies: its files that git does not
+# ignore (.dockerignore leaves out no more of them than git does, besides deploy's party folders).
+zk0_context_hash() {
+    (cd "$1" && git ls-files -z -c -o --exclude-standard -- . ':!deploy/*/' 2>/dev/null | sort -z | xargs -0 -r sha256sum | sha256sum | cut -c1-16)
+}
+
+# podman build of the project folder $1 as image $2, on the base zk0_ensure_image makes, labelled
+# with its context's digest.
 zk0_build_image() {
     local cert build=(podman build --format docker --network host --build-arg BASE=localhost/zk0-base-trixie -t "$2")
+    build+=(--label "zk0.context=$(zk0_context_hash "$1")")
     cert="${PIP_CERT:-$("$ZK0_VENV/bin/python" -m pip config list 2>/dev/null | sed -n "s/^[^=]*\.cert='\(.*\)'\$/\1/p" | head -n 1)}"
     [ -z "$cert" ] || build+=(-v "$cert:/etc/zk0-pip-cert.pem:ro" --build-arg PIP_CERT=/etc/zk0-pip-cert.pem)
     "${build[@]}" "$1"

@@ -48,6 +48,7 @@ def image() -> dict[str, str]:
     return env
 
 
+@pytest.mark.allowance(240)
 def test_the_quick_run_in_the_container_writes_the_hosts_outputs_as_the_host_user(image):
     """``./train.sh --docker``: the run's report and models/best land in the host's outputs/,
     owned by whoever ran it (not the image's user 10001), with the figures the run's JSON holds."""
