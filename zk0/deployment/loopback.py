@@ -121,9 +121,18 @@ class LoopbackFederation:
                 tree += [parent, *parent.children(recursive=True)]
         return tree + warm_workers_of({p.pid for p in tree})
 
-    def stop_all(self) -> None:
-        for name in reversed(list(self.processes)):
-            self.stop(name)
+    def stop_all(self, sig: int = signal.SIGTERM, grace_s: float = 20) -> None:
+        """Signal every process group at once, then SIGKILL what lingers after ``grace_s``: stopped
+        one at a time, the processes that were slow to exit added their waits up."""
+        for proc in self.processes.values():
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, sig)
+        deadline = time.monotonic() + grace_s
+        for proc in self.processes.values():
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
 
 
 def warm_workers_of(pids: set[int]) -> list[psutil.Process]:
