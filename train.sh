@@ -118,14 +118,6 @@ if [ "$docker" = 1 ]; then
             exit 2
         }
     }
-    # podman as root gives each container ulimits above the machine's (nofile 1048576); where even
-    # root may not raise them (a sandbox, a container), runc starts nothing ("error setting rlimit"),
-    # so its containers keep this machine's limits (scripts/setup.sh's containers.conf).
-    if [ "$engine" = podman ] && [ -z "${CONTAINERS_CONF:-}" ] && [ "$(id -u)" = 0 ] && ! (ulimit -Hn 1048576) 2>/dev/null; then
-        source "$ROOT/scripts/setup.sh"
-        CONTAINERS_CONF="$(zk0_containers_conf)" && export CONTAINERS_CONF
-        zk0_log "This machine lets no one raise its ulimits, so podman's containers keep its own (CONTAINERS_CONF=$CONTAINERS_CONF)."
-    fi
     # The image's outputs/ is the host's: a run folder to resume is named by its place under it.
     for ((i = 0; i < ${#inner[@]}; i++)); do
         [ "${inner[$i]}" = --resume ] || continue
@@ -154,6 +146,14 @@ if [ "$docker" = 1 ]; then
         run=("${run[@]:0:2}" -d --name "$session" "${run[@]:2}")
     fi
     if [ "$print_only" = 0 ]; then
+        # podman as root gives each container ulimits above the machine's (nofile 1048576); where even
+        # root may not raise them (a sandbox, a container), runc starts nothing ("error setting rlimit"),
+        # so its containers keep this machine's limits (scripts/setup.sh's containers.conf).
+        if [ "$engine" = podman ] && [ -z "${CONTAINERS_CONF:-}" ] && [ "$(id -u)" = 0 ] && ! (ulimit -Hn 1048576) 2>/dev/null; then
+            source "$ROOT/scripts/setup.sh"
+            CONTAINERS_CONF="$(zk0_containers_conf)" && export CONTAINERS_CONF
+            zk0_log "This machine lets no one raise its ulimits, so podman's containers keep its own (CONTAINERS_CONF=$CONTAINERS_CONF)."
+        fi
         mkdir -p "$ROOT/outputs"
         if ! "$engine" image inspect zk0 >/dev/null 2>&1; then
             build=("$engine" build -t zk0)
