@@ -19,12 +19,14 @@ CPU = {"num-supernodes": 4, "client-resources-num-cpus": 1, "client-resources-nu
 def test_full_size_clients_train_as_many_at_once_as_the_memory_holds():
     run = RunConfig(model="full-size")
     sized, said = sized_federation(run, {**CPU, "init-args-num-cpus": 4}, available=int(20 * GIB))
-    assert sized == {**CPU, "init-args-num-cpus": 2}  # 0.8 x 20 GiB: the server and two clients of 4.55 GiB
+    # 0.8 x 20 GiB: the server of four clients (9.5 GiB, each one's update, reply and decoding besides
+    # the model) and one client training (4.55 GiB)
+    assert sized == {**CPU, "init-args-num-cpus": 1}
     assert said == (
-        "model='full-size' needs about 4.5 GiB a simulated client and 20.0 GiB of memory is available, so 2 of "
-        "the 4 clients train at a time instead of 4."
+        "model='full-size' needs about 4.5 GiB a simulated client and 20.0 GiB of memory is available, so 1 of "
+        "the 4 clients trains at a time instead of 4."
     )
-    assert sized_federation(run, {**CPU, "init-args-num-cpus": 2}, available=int(20 * GIB)) == (
+    assert sized_federation(run, {**CPU, "init-args-num-cpus": 2}, available=int(30 * GIB)) == (
         {**CPU, "init-args-num-cpus": 2}, None,
     ), "two at once already fit: the config stays as it is"  # fmt: skip
     assert sized_federation(RunConfig(model="tiny"), CPU, available=int(4 * GIB)) == (CPU, None)
@@ -34,10 +36,11 @@ def test_full_size_clients_train_as_many_at_once_as_the_memory_holds():
 
 def test_a_model_that_does_not_fit_beside_the_server_is_refused_in_one_sentence():
     with pytest.raises(NotEnoughMemory) as refused:
-        sized_federation(RunConfig(model="full-size"), CPU, available=int(10 * GIB))
+        sized_federation(RunConfig(model="full-size"), CPU, available=int(16 * GIB))
     assert str(refused.value) == (
-        "model='full-size' needs about 4.5 GiB for the server and as much for each simulated client, and this "
-        "machine has 10.0 GiB of memory available; free some, or choose a smaller model (model='tiny')."
+        "model='full-size' needs about 9.5 GiB for the server of 4 simulated clients and 4.5 GiB for each client "
+        "training, and this machine has 16.0 GiB of memory available; free some, or choose a smaller model "
+        "(model='tiny')."
     )
 
 

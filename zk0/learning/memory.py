@@ -9,7 +9,8 @@ them and the server ran a 24 GiB machine out of memory, and Ray's monitor killed
 traceback each on the console.
 
 ``sized_federation`` sizes how many clients train at once (Ray's ``init-args-num-cpus``) to the
-memory available now, or refuses in one sentence naming the key to change; ``room_for_another``
+memory available now, beside the server, which holds each client's update, reply and its decoding
+as well as the model (10.2 GB for a full-size round of four clients), or refuses in one sentence naming the key to change; ``room_for_another``
 tells a simulated client whether it may build another owner's client beside those it keeps.
 """
 
@@ -27,9 +28,15 @@ PROCESS_BYTES = int(0.85 * GIB)  # Python, torch and lerobot imported (docs/perf
 # A built client after its first steps, beyond its process's imports (docs/performance.md, batch 2-8):
 # the policy, its processors, the dataset and AdamW's moments.
 SESSION_BYTES = {"tiny": int(0.1 * GIB), "tiny-128": int(0.15 * GIB), "full-size": int(3.7 * GIB)}
+# What the server holds for each client of a round besides its own model: the update it sent, the
+# reply and its fp32 decoding (measured: a full-size simulation of 4 clients, its server process
+# 10.2 GB at the round's end, 2026-12-06).
+EXCHANGE_BYTES = {"tiny": int(0.01 * GIB), "tiny-128": int(0.01 * GIB), "full-size": int(1.25 * GIB)}
 # A checkpoint's weights, fp32, become about this many times their bytes once trained (full-size: 1.8 GB
-# of weights, 3.7 GiB built and stepped: gradients and two moments of the trainable fifth, buffers).
+# of weights, 3.7 GiB built and stepped: gradients and two moments of the trainable fifth, buffers),
+# and the server holds about this share of them for each client of a round.
 WEIGHTS_FACTOR = 2.2
+EXCHANGE_FACTOR = 0.75
 SHARE = 0.8  # of the memory available now: Ray's monitor kills workers at 95% of the machine's
 
 
@@ -37,14 +44,25 @@ class NotEnoughMemory(Zk0Error):
     """The simulation cannot fit in this machine's memory."""
 
 
+def weights_bytes(model: str) -> int:
+    """A local checkpoint folder's weights; 0 for anything else."""
+    folder = Path(model).expanduser()
+    return sum(p.stat().st_size for p in folder.glob("*.safetensors")) if folder.is_dir() else 0
+
+
 def session_bytes(model: str) -> int | None:
     """What one built client of ``model`` holds (an offline name, or a local checkpoint folder's
     weights scaled); None where it cannot be told before the model is fetched (a Hub id)."""
     if model in SESSION_BYTES:
         return SESSION_BYTES[model]
-    folder = Path(model).expanduser()
-    weights = sum(p.stat().st_size for p in folder.glob("*.safetensors")) if folder.is_dir() else 0
-    return int(WEIGHTS_FACTOR * weights) if weights else None
+    return int(WEIGHTS_FACTOR * weights_bytes(model)) or None
+
+
+def server_bytes(model: str, clients: int) -> int:
+    """What a simulation's server process holds at a round's end with ``clients`` clients: its
+    imports, the global model as a client holds one, and each client's exchange."""
+    exchange = EXCHANGE_BYTES.get(model) or int(EXCHANGE_FACTOR * weights_bytes(model))
+    return PROCESS_BYTES + (session_bytes(model) or 0) + clients * exchange
 
 
 def gib(count: float) -> str:
@@ -64,21 +82,23 @@ def sized_federation(run: RunConfig, federation: dict, available: int | None = N
     budget = SHARE * (psutil.virtual_memory().available if available is None else available)
     cpus_each = float(federation.get("client-resources-num-cpus", 1))
     cpus = int(federation.get("init-args-num-cpus", psutil.cpu_count() or 1))
-    at_once = min(int(cpus // cpus_each), int(federation.get("num-supernodes", 1)))
-    fits = int((budget - per_client) // per_client)  # the server holds about what a client does
+    clients = int(federation.get("num-supernodes", 1))
+    at_once = min(int(cpus // cpus_each), clients)
+    server = server_bytes(run.model, clients)
+    fits = int((budget - server) // per_client)
     if fits < 1:
         raise NotEnoughMemory(
-            f"model={run.model!r} needs about {gib(per_client)} for the server and as much for each simulated "
-            f"client, and this machine has {gib(budget / SHARE)} of memory available; free some, or choose a "
-            "smaller model (model='tiny')."
+            f"model={run.model!r} needs about {gib(server)} for the server of {clients} simulated clients and "
+            f"{gib(per_client)} for each client training, and this machine has {gib(budget / SHARE)} of memory "
+            "available; free some, or choose a smaller model (model='tiny')."
         )
     if fits >= at_once:
         return federation, None
     sized = {**federation, "init-args-num-cpus": int(fits * cpus_each)}
     return sized, (
         f"model={run.model!r} needs about {gib(per_client)} a simulated client and {gib(budget / SHARE)} of "
-        f"memory is available, so {fits} of the {int(federation.get('num-supernodes', 1))} clients train at a "
-        f"time instead of {at_once}."
+        f"memory is available, so {fits} of the {clients} clients {'trains' if fits == 1 else 'train'} at a time "
+        f"instead of {at_once}."
     )
 
 
