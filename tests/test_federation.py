@@ -347,7 +347,10 @@ def test_the_full_size_model_takes_a_step_checkpoints_and_loads_in_lerobot(flowe
 
     ensure_backbone(kind=FULL_SIZE_BACKBONE)  # what `zk0 assets` makes once per machine
     out = tmp_path / "outputs"
+    # No client evaluation: a full-size forward on one thread is 10-20 s, and the server's two (round 0
+    # and round 1, which models/best needs) already step that path.
     config = "model='full-size' num-server-rounds=1 local-steps=1 batch-size=1 eval-batches=1 min-train-clients=1"
+    config += " fraction-evaluate=0"
     log = flwr_run(flower_env, f"{config} output-dir='{out}'", cpu_federation(1, actors=1))
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]

@@ -36,6 +36,10 @@ from zk0.learning.training import PooledTrainer, evaluate
 from zk0.sim.tasks import SIM_SPECS
 
 EVAL_ALL = 1000  # eval-batches: every held-out batch of the synthetic datasets
+# The closed-loop benchmarks judge a federation's model by its rollouts, not by its offline figures:
+# their federations evaluate one server batch (the round-0 and last-round rows of its history stay)
+# and ask no owner to evaluate, which was most of a small federation's time (20 of 31 s).
+JUDGED_BY_ROLLOUTS = {"eval-batches": 1, "fraction-evaluate": 0.0}
 SERVER = "server"  # the server's evaluation set, as a column of the matrices
 Weights = dict[str, torch.Tensor]
 

@@ -31,6 +31,7 @@ from matplotlib.figure import Figure
 from zk0.artifacts.logs import native_output_to
 from zk0.bench.client import write_json
 from zk0.bench.models import (
+    JUDGED_BY_ROLLOUTS,
     SERVER,
     Weights,
     add_sim_cube_recipe,
@@ -72,7 +73,7 @@ def global_model(args: argparse.Namespace, size: int, run: RunConfig, stash: Sta
     (kept in ``stash``)."""
     keys = {"registry": run.registry, "server-eval-dataset": run.server_eval_dataset, "model": run.model,
             "seed": run.seed, "eval-frequency": run.num_server_rounds, "min-train-clients": args.per_round,
-            "fraction-train": args.per_round / size, "fraction-evaluate": 1.0}  # fmt: skip
+            "fraction-train": args.per_round / size, **JUDGED_BY_ROLLOUTS}  # fmt: skip
     return kept_federation(args, stash, size, keys, server_bundle)
 
 

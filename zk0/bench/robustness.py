@@ -37,6 +37,7 @@ from pathlib import Path
 from zk0.artifacts.logs import native_output_to
 from zk0.bench.client import write_json
 from zk0.bench.models import (
+    JUDGED_BY_ROLLOUTS,
     SERVER,
     Weights,
     add_sim_cube_recipe,
@@ -90,7 +91,7 @@ def global_model(args: argparse.Namespace, run: RunConfig, stash: Stash, server_
     """The federation's final global model, trained through ``flwr run`` (kept in ``stash``)."""
     keys = {"registry": run.registry, "server-eval-dataset": run.server_eval_dataset, "model": run.model,
             "seed": run.seed, "eval-frequency": run.num_server_rounds, "proximal-mu": 0.0,
-            "server-optimiser": "nesterov", "image-transforms": run.image_transforms}  # fmt: skip
+            "server-optimiser": "nesterov", "image-transforms": run.image_transforms, **JUDGED_BY_ROLLOUTS}  # fmt: skip
     return kept_federation(args, stash, args.clients, keys, server_bundle)
 
 
