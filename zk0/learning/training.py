@@ -178,18 +178,25 @@ class LocalTrainer:
         self.split, self.loader, self._batches = split, loader, None
 
     def _open_batches(self) -> None:
-        """Open the data iterator if it is not open (opening one draws from PyTorch's generator)."""
+        """Open the data iterator if it is not open.
+
+        Opening one draws a seed from PyTorch's generator, so it is opened on a fork of that
+        generator: a round's random numbers then do not depend on whether the round opened the
+        next epoch's iterator. Without the fork, a run resumed where an epoch ended (its
+        iterator opened afresh) trained other noise than the uninterrupted run, which opened
+        that iterator after seeding its next round."""
         if self._batches is None:
-            self._batches = iter(self.loader)
+            with torch.random.fork_rng(devices=[]):
+                self._batches = iter(self.loader)
 
     def _next_batch(self) -> dict:
-        if self._batches is None:
-            self._batches = iter(self.loader)
+        self._open_batches()
         self.batches_seen += 1
         try:
             return next(self._batches)
         except StopIteration:
-            self._batches = iter(self.loader)
+            self._batches = None
+            self._open_batches()
             return next(self._batches)
 
     def optimizer_record(self) -> ArrayRecord:
@@ -243,8 +250,7 @@ class LocalTrainer:
 
         The random numbers (SmolVLA's flow-matching noise and time) are seeded by the run's seed,
         the dataset and ``global_step``: a round trains the same whichever process runs it, so a
-        resumed run equals an uninterrupted one. (The loader's iterator is opened before seeding:
-        opening one draws from the same generator, and a resumed client opens its first here.)"""
+        resumed run equals an uninterrupted one."""
         self._open_batches()
         torch.manual_seed(self.run.seed + global_step + zlib.crc32(self.dataset_name.encode()))
         self.fedprox.anchor_at(mu)
