@@ -160,7 +160,9 @@ def test_two_clients_three_rounds_write_every_artifact(three_rounds):
 def test_a_resumed_run_ends_with_the_same_model_as_an_uninterrupted_one(flower_env, three_rounds, tmp_path):
     """The server optimiser's state (outer Nesterov's momentum, the default) comes back from the
     checkpoint, and each client's optimizer moments and data position from the state it kept at that
-    round: resumed after round 2, the run's round-3 model equals the uninterrupted run's, bit for bit."""
+    round: resumed after round 2, the run's round-3 model equals the uninterrupted run's, bit for bit.
+    (Client 1's 120 training frames are 30 batches: its epoch ends with round 2, where a resumed
+    client once drew other noise than the uninterrupted one.)"""
     straight, log = three_rounds
     assert (straight / "models" / "checkpoint_round_3").is_dir(), log[-3000:]
     resumed_out = tmp_path / "resumed"
