@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 from loguru import logger
 
-from zk0.federation.waiting import OwnersGone, OwnersWatch
+from zk0.federation.waiting import SIMULATION_GRACE_S, OwnersGone, OwnersWatch, TooFewSimulatedOwners
 
 
 class Clock:
@@ -69,3 +69,26 @@ def test_wait_for_owners_s_0_waits_as_long_as_it_takes(console):
         "Round 1 waits for owners: 1 of the 2 it needs (min-train-clients=2) connected; it waits for them as long as "
         "it takes (wait-for-owners-s=0)."
     ]
+
+
+def test_a_simulation_short_of_owners_is_refused_once_its_supernodes_have_registered(console):
+    """Flower's simulation has every SuperNode it will ever have: after the grace its registration
+    takes, one sentence that says what to change; nothing waits wait-for-owners-s for nodes that
+    cannot come, and the console hears no waiting sentence."""
+    clock = Clock()
+    watch = OwnersWatch(needed=3, limit_s=300, simulated=True, clock=clock)
+    watch.seen(1, 0)  # a look before Flower registered the nodes
+    clock.now += SIMULATION_GRACE_S - 1
+    watch.seen(1, 2)
+    clock.now += 1
+    with pytest.raises(TooFewSimulatedOwners) as refused:
+        watch.seen(1, 2)
+    assert str(refused.value) == (
+        'This simulation has 2 SuperNode(s) and min-train-clients=3 needs 3; give it more (--federation-config '
+        '"num-supernodes=3") or lower min-train-clients.'
+    )
+    assert console == []
+    enough = OwnersWatch(needed=2, limit_s=300, simulated=True, clock=clock)
+    enough.seen(1, 0)
+    clock.now += 2
+    enough.seen(1, 2)  # registered within the grace: the round goes on

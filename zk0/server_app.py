@@ -248,7 +248,7 @@ def main(grid: Grid, context: Context) -> None:
         averaging=run.averaging,
         privacy=privacy,
         rule=make_rule(run, optimiser.weighted_by_key),
-        owners=OwnersWatch(run.min_train_clients, run.wait_for_owners_s),
+        owners=OwnersWatch(run.min_train_clients, run.wait_for_owners_s, simulated=is_simulation(grid)),
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own
     # machine, never at a path of the server's) and what both ends must share.

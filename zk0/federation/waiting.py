@@ -9,6 +9,11 @@ round waits depends on which comes first. ``OwnersWatch`` sees each of Flower's 
 wrapped grid (``watching``): the console hears once how many of how many are connected, again
 only when that count changes, and after ``wait-for-owners-s`` (0: never) ``OwnersGone`` ends the
 round loop. Flower's own once-a-second line stays in server.log.
+
+A simulation's SuperNodes never come or go: one with fewer than ``min-train-clients`` is a
+configuration that no wait mends, so it is refused in one sentence (``TooFewSimulatedOwners``)
+once its SuperNodes have had ``SIMULATION_GRACE_S`` to register (Flower registers them while the
+ServerApp starts), instead of after ``wait-for-owners-s``.
 """
 
 from __future__ import annotations
@@ -20,18 +25,29 @@ from flwr.serverapp import Grid
 
 from zk0.artifacts.logs import say
 from zk0.common.errors import Zk0Error
+from zk0.config import ConfigError
 
 
 class OwnersGone(Zk0Error):
     """A round waited ``wait-for-owners-s`` for enough owners, and they did not come."""
 
 
+SIMULATION_GRACE_S = 10.0
+
+
+class TooFewSimulatedOwners(ConfigError):
+    """A simulation with fewer SuperNodes than ``min-train-clients``."""
+
+
 class OwnersWatch:
     """How long the current round has waited for owners and what the console was last told."""
 
-    def __init__(self, needed: int, limit_s: float, clock: Callable[[], float] = time.monotonic):
+    def __init__(
+        self, needed: int, limit_s: float, simulated: bool = False, clock: Callable[[], float] = time.monotonic
+    ):
         self.needed = needed  # the strategy's minimum: min-train-clients
         self.limit_s = limit_s  # 0: wait as long as it takes
+        self.simulated = simulated  # Flower's simulation: the SuperNodes it has are all it will have
         self.clock = clock
         self.since: float | None = None  # when this wait began; None while enough are connected
         self.said: int | None = None  # the connected count the console was last told
@@ -56,6 +72,14 @@ class OwnersWatch:
         now = self.clock()
         if self.since is None:
             self.since = now
+        if self.simulated:
+            if now - self.since >= SIMULATION_GRACE_S:
+                raise TooFewSimulatedOwners(
+                    f"This simulation has {connected} SuperNode(s) and min-train-clients={self.needed} needs "
+                    f"{self.needed}; give it more (--federation-config \"num-supernodes={self.needed}\") or lower "
+                    "min-train-clients."
+                )
+            return
         if connected != self.said:
             self.said = connected
             say("{}", self.waiting_sentence(server_round, connected))
