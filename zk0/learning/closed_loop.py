@@ -76,15 +76,19 @@ class ClosedLoop:
     def rollouts(self, bundle: PolicyBundle, video: Path | None = None) -> list[Episode]:
         """Every episode, in seed order. The policy's noise is drawn from a generator seeded with the
         run's seed (and the caller's random state left as it was), so a model meets the same noise
-        on the same episodes every time it is evaluated."""
+        on the same episodes every time it is evaluated. The policy acts in eval mode, as in
+        lerobot's ``eval_policy`` (no dropout), and is left in the mode it was in."""
         frames: list[np.ndarray] | None = [] if video else None
         batch = len(self.envs)
         done: list[Episode] = []
+        training = bundle.policy.training
+        bundle.policy.eval()
         with torch.random.fork_rng(devices=rng_devices(bundle)):
             torch.manual_seed(self.seed)
             for first in range(0, self.episodes, batch):
                 seeds = range(self.seed + first, self.seed + min(first + batch, self.episodes))
                 done += self._batch(bundle, list(seeds), frames if first == 0 else None)
+        bundle.policy.train(training)  # ACT's predict_action_chunk itself switches to eval mode
         if video and frames:
             video.parent.mkdir(parents=True, exist_ok=True)
             write_video(str(video), np.stack(frames), self.config.fps)
