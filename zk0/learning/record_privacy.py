@@ -182,7 +182,8 @@ class PrivateTrainer(LocalTrainer):
         norms = torch.stack([p.grad_sample.reshape(size, -1).norm(dim=1) for p in params]).norm(dim=0) if size else None
         self.private_optimizer.step()
         self.private_optimizer.zero_grad(set_to_none=True)
-        self.scheduler.step()
+        if self.scheduler is not None:
+            self.scheduler.step()
         tracker.loss = sum(losses) / size if size else 0.0
         tracker.grad_norm = float(norms.mean()) if norms is not None else 0.0
         tracker.lr = self.optimizer.param_groups[0]["lr"]

@@ -117,7 +117,10 @@ def accelerator_for(device: torch.device) -> Accelerator:
 
 
 def set_schedule_step(scheduler, global_step: int) -> None:
-    """Put a LambdaLR schedule (lerobot's presets) at ``global_step`` and set the learning rates."""
+    """Put a LambdaLR schedule (lerobot's presets) at ``global_step`` and set the learning rates;
+    a policy whose preset has no schedule (ACT's) trains at its constant rate."""
+    if scheduler is None:
+        return
     scheduler.last_epoch = global_step
     lrs = [base * fn(global_step) for base, fn in zip(scheduler.base_lrs, scheduler.lr_lambdas, strict=True)]
     for group, lr in zip(scheduler.optimizer.param_groups, lrs, strict=True):
@@ -134,7 +137,7 @@ class LocalTrainer:
     loader: DataLoader
     run: RunConfig
     optimizer: torch.optim.Optimizer = field(init=False)
-    scheduler: torch.optim.lr_scheduler.LambdaLR = field(init=False)
+    scheduler: torch.optim.lr_scheduler.LambdaLR | None = field(init=False)  # None: the preset's constant rate
     accelerator: Accelerator = field(init=False)
     fedprox: FedProx = field(init=False)
     transforms: ImageTransforms | None = field(init=False, default=None)  # image-transforms
@@ -143,12 +146,13 @@ class LocalTrainer:
 
     def __post_init__(self) -> None:
         cfg = self.bundle.policy.config
+        schedule = cfg.get_scheduler_preset()
         train_cfg = TrainPipelineConfig(
             dataset=None,  # type: ignore[arg-type]  # only the optimizer presets and steps are read
             policy=cfg,
-            # SmolVLA's presets at this trainer's own peak rate (a personal fine-tune's is lower)
+            # the policy's presets at this trainer's own peak rate (a personal fine-tune's is lower)
             optimizer=replace(cfg.get_optimizer_preset(), lr=self.run.lr),
-            scheduler=replace(cfg.get_scheduler_preset(), peak_lr=self.run.lr),
+            scheduler=schedule and replace(schedule, peak_lr=self.run.lr),
             steps=self.run.total_steps,
         )
         self.optimizer, self.scheduler = make_optimizer_and_scheduler(train_cfg, self.bundle.policy)
@@ -252,6 +256,7 @@ class LocalTrainer:
         the dataset and ``global_step``: a round trains the same whichever process runs it, so a
         resumed run equals an uninterrupted one."""
         self._open_batches()
+        self.bundle.policy.train()  # as lerobot's training loop does: dropout on, whatever ran before
         torch.manual_seed(self.run.seed + global_step + zlib.crc32(self.dataset_name.encode()))
         self.fedprox.anchor_at(mu)
         set_schedule_step(self.scheduler, global_step)
