@@ -103,7 +103,7 @@ def broken(kind: str, good: Path, tmp_path: Path) -> tuple[Path, str]:
 
 
 EXPECTED = {
-    "no-camera": "Dataset 'owner' records no camera; SmolVLA needs at least one camera image.",
+    "no-camera": "Dataset 'owner' records no camera; the policy needs at least one camera image.",
     "v2.1": "Dataset 'owner' (someone/{name}) is in an older LeRobot format; convert it to v3.0 with "
     "`python -m lerobot.scripts.convert_dataset_v21_to_v30 --repo-id=someone/{name}` and pin the new revision.",
     "seven-joints": "Dataset 'owner' has 'observation.state' of size [7]; the model expects [6] "

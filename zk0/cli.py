@@ -40,7 +40,8 @@ def _assets(args: argparse.Namespace) -> int:
     names = args.only or [TINY_BACKBONE, *(name for name, spec in SPECS.items() if not spec.benchmark_only)]
     if args.run_config:  # and the backbone and every dataset zk0 generates that this run names
         run, _ = _merged_run(None, args.run_config)
-        wanted = [OFFLINE_BACKBONES[run.model]] if run.model in OFFLINE_BACKBONES else []
+        smolvla = run.policy == "smolvla" and run.model in OFFLINE_BACKBONES  # the others need no backbone
+        wanted = [OFFLINE_BACKBONES[run.model]] if smolvla else []
         wanted += [e.name for e in load_registry(run.registry).entries if e.synthetic]
         names += [name for name in wanted if name not in names]
     for name in names:

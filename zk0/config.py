@@ -22,6 +22,7 @@ DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
 WIRE_DTYPES = ("bfloat16", "float32")  # zk0.federation.wire encodes them
 OFFLINE_MODELS = ("tiny", "tiny-128", "full-size")  # built from a generated backbone with random weights (zk0.learning.policy)
+POLICIES = ("smolvla", "act")  # the lerobot policy types a fresh model is built as (zk0.learning.policy_types)
 PEFT_METHODS = ("none", "lora")  # zk0.learning.adapters
 LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.learning.adapters)
 # SmolVLA's small state, action and time projections: by default trained in full next to the adapters
@@ -69,6 +70,7 @@ class RunConfig:
     checkpoint_interval: int = 5
     keep_checkpoints: int = 2  # the newest N checkpoints stay on disk (models/best besides); 0 = every one
     model: str = "tiny"
+    policy: str = "smolvla"  # the lerobot policy type of a fresh model; a checkpoint's own type must match
     chunk_size: int = 10
     device: str = "auto"
     seed: int = 42
@@ -249,6 +251,7 @@ def _check_choices(cfg: RunConfig) -> None:
         raise ConfigError(f"Run-config key 'hf-repo-id' got {cfg.hf_repo_id!r}; expected '<owner>/<model-name>'.")
     if not cfg.model:
         raise ConfigError("Run-config key 'model' is empty; expected 'tiny', a Hub repo id or a local directory.")
+    _check_policy(cfg)
     _check_peft(cfg)
     _check_server_optimiser(cfg)
     _check_privacy(cfg)
@@ -278,6 +281,22 @@ def _check_server_optimiser(cfg: RunConfig) -> None:
         raise ConfigError(
             f"Run-config key 'update-clip' got {cfg.update_clip!r}; expected 0 (off) or a factor >= 1 "
             "(an update larger than that many times the others' median is scaled down to the median)."
+        )
+
+
+def _check_policy(cfg: RunConfig) -> None:
+    """A policy type zk0 builds, at a size that type has (``tiny-128`` is a SmolVLM backbone's)."""
+    if cfg.policy not in POLICIES:
+        raise ConfigError(f"Run-config key 'policy' got {cfg.policy!r}; expected one of {list(POLICIES)}.")
+    if cfg.policy != "smolvla" and cfg.model == "tiny-128":
+        raise ConfigError(
+            f"Run-config key 'model' got 'tiny-128', a size of SmolVLA's backbone, and policy={cfg.policy!r}; "
+            "expected 'tiny', 'full-size' or a checkpoint folder."
+        )
+    if cfg.policy != "smolvla" and cfg.peft != "none":
+        raise ConfigError(
+            f"Run-config key 'peft' = {cfg.peft!r} adapts SmolVLA, and policy={cfg.policy!r} trains in full; "
+            "expected peft='none'."
         )
 
 

@@ -51,6 +51,7 @@ from zk0.learning.policy import (
     get_trainable,
     set_trainable,
 )
+from zk0.learning.policy_types import name_of
 from zk0.learning.preflight import SIZED, check_federation
 from zk0.learning.training import evaluate
 
@@ -112,8 +113,9 @@ def describe_run(run: RunConfig, registry: Registry, bundle: PolicyBundle) -> No
     say("{} clients: {}; the server evaluates on {}", len(registry.clients), clients, run.server_eval_dataset)
     adapters = "" if run.peft == "none" else f" with {run.peft} adapters"
     say(
-        "Model: {} SmolVLA{} ({:,} trainable parameters in {} tensors) on {}; server optimiser {}",
+        "Model: {} {}{} ({:,} trainable parameters in {} tensors) on {}; server optimiser {}",
         run.model,
+        name_of(bundle.policy.config),
         adapters,
         sum(p.numel() for p in bundle.policy.parameters() if p.requires_grad),
         len(bundle.trainable_names),

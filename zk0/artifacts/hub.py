@@ -19,19 +19,20 @@ from loguru import logger
 
 from zk0.config import DEFAULT_SERVER_LR, OFFLINE_MODELS, RunConfig
 from zk0.data.registry import DatasetEntry
+from zk0.learning.policy_types import NAMES
 
 CARD = """---
 library_name: lerobot
 pipeline_tag: robotics
 base_model: {base_model}
-tags: [lerobot, smolvla, federated-learning, flower, so100, so101]
+tags: [lerobot, {policy_type}, federated-learning, flower, so100, so101]
 datasets:
 {dataset_list}
 ---
 
 # {repo_id}
 
-A SmolVLA policy fine-tuned with **federated learning** ([zk0](https://github.com/ivelin/zk0),
+A {policy_name} policy trained with **federated learning** ([zk0](https://github.com/ivelin/zk0),
 [Flower](https://flower.ai) + [LeRobot](https://github.com/huggingface/lerobot)) across
 {num_clients} SO-100/SO-101 robot datasets whose owners never shared their data. Each client
 trained locally (FedProx mu = {mu}); the server averaged the trainable parameters (weighted
@@ -68,7 +69,7 @@ statistics are in `client_stats/` for robot owners who want to normalise with th
 ## Run it on an SO-100/SO-101 arm
 
 ```bash
-pip install "lerobot[feetech,smolvla]==0.6.1"
+pip install "lerobot[{extras}]==0.6.1"
 lerobot-rollout --strategy.type=base \\
   --robot.type=so101_follower --robot.port=/dev/ttyACM0 --robot.id=my_arm \\
   --robot.cameras="{{ camera1: {{type: opencv, index_or_path: 0, width: 640, height: 480, fps: 30}} }}" \\
@@ -93,6 +94,15 @@ def server_optimiser(run: RunConfig) -> str:
     return f"{run.server_optimiser} (server-lr {lr}{momentum})"
 
 
+def base_model(run: RunConfig) -> str:
+    """What the card names as the start: a checkpoint, or the random weights zk0 built."""
+    if run.model not in OFFLINE_MODELS:
+        return run.model
+    if run.policy == "smolvla":
+        return f"zk0 offline {run.model} SmolVLM backbone"
+    return f"zk0 {run.model} {NAMES[run.policy]} from random weights"
+
+
 def model_card(
     run: RunConfig, repo_id: str, entries: list[DatasetEntry], server_round: int, final: dict | None, best: bool
 ) -> str:
@@ -106,7 +116,10 @@ def model_card(
     metrics = "\n".join(f"- **{k}**: {v:.4g}" for k, v in (final or {}).items()) or "- not evaluated"
     eval_dataset = next((e.repo_id for e in entries if e.role == "server"), "?")
     return CARD.format(
-        base_model=run.model if run.model not in OFFLINE_MODELS else f"zk0 offline {run.model} SmolVLM backbone",
+        base_model=base_model(run),
+        policy_type=run.policy,
+        policy_name=NAMES[run.policy],
+        extras="feetech,smolvla" if run.policy == "smolvla" else "feetech",
         dataset_list="\n".join(f"  - {e.repo_id}" for e in entries),
         repo_id=repo_id,
         model_name=repo_id.split("/")[-1],

@@ -49,6 +49,7 @@ from zk0.learning.policy import (
     trainable_tensors,
 )
 from zk0.learning.memory import room_for_another
+from zk0.learning.policy_types import name_of
 from zk0.learning.preflight import check_dataset, model_inputs
 from zk0.learning.training import LocalTrainer, evaluate
 
@@ -115,10 +116,11 @@ def build_client(
         trainer = trainer_kind(run)(bundle, split, train_loader(split.train, run, bundle.device), run)
         fingerprint = backbone_fingerprint(bundle)
         logger.info(
-            "Opened {} ({} training, {} held-out episodes) and built SmolVLA ({} trainable tensors) on {}; app {}",
+            "Opened {} ({} training, {} held-out episodes) and built {} ({} trainable tensors) on {}; app {}",
             entry.name,
             len(split.train.episodes),
             len(split.evaluation.episodes),
+            name_of(bundle.policy.config),
             len(bundle.trainable_names),
             bundle.device,
             app_fingerprint(),

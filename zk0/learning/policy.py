@@ -1,8 +1,10 @@
-"""SmolVLA and its processors, built with lerobot's factories the same way on every party.
+"""The policy (SmolVLA, ACT) and its processors, built with lerobot's factories the same way on every party.
 
 Only the trainable parameters travel between server and clients; the frozen backbone
 comes from the same base (the tiny offline backbone seeded identically, or a pretrained
-checkpoint), and its fingerprint travels in the config so a mismatch fails loudly.
+checkpoint), and its fingerprint travels in the config so a mismatch fails loudly. A policy
+trained in full (ACT) has no frozen part: every parameter travels, and every party starts from
+the same seeded weights.
 """
 
 from __future__ import annotations
@@ -18,22 +20,15 @@ from flwr.app import ArrayRecord
 from lerobot.configs import FeatureType, PreTrainedConfig
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.policies import PreTrainedPolicy, make_policy, make_pre_post_processors
-from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
 from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep, rename_stats
 from lerobot.utils.feature_utils import dataset_to_policy_features
-from transformers import AutoConfig
 
 from zk0.common.cache import default_cache_root
 from zk0.common.errors import Zk0Error
-from zk0.config import OFFLINE_MODELS, RunConfig
-from zk0.data.assets import OFFLINE_BACKBONES, ensure_backbone
+from zk0.config import OFFLINE_MODELS, POLICIES, RunConfig
 from zk0.data.registry import DatasetEntry
 from zk0.learning import adapters
-
-# torch.compile mode for `compile = true`: lerobot's default, max-autotune, spends minutes
-# benchmarking kernels in every new process; "default" measured 0.157 s/step at batch 64 on an
-# H100 against 0.288 s eager (docs/performance.md).
-COMPILE_MODE = "default"
+from zk0.learning.policy_types import COMPILE_MODE, fresh_config, name_of
 
 class PolicyError(Zk0Error):
     """A dataset or model that cannot feed the global policy; one sentence naming it."""
@@ -74,31 +69,30 @@ def keep_compiled_code() -> None:
     os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(default_cache_root() / "inductor"))
 
 
-def policy_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
-    """SmolVLA's config: a fresh policy on an offline backbone, or a pretrained policy's own config."""
+def policy_config(run: RunConfig, device: torch.device) -> PreTrainedConfig:
+    """A fresh policy's config (zk0.learning.policy_types), or a pretrained policy's own config."""
     if run.model in OFFLINE_MODELS:
-        backbone = ensure_backbone(kind=OFFLINE_BACKBONES[run.model])
-        image_size = AutoConfig.from_pretrained(backbone).vision_config.image_size
-        return SmolVLAConfig(
-            vlm_model_name=str(backbone),
-            load_vlm_weights=False,
-            resize_imgs_with_padding=(image_size, image_size),
-            chunk_size=run.chunk_size,
-            n_action_steps=run.chunk_size,
-            optimizer_lr=run.lr,
-            device=device.type,
-            push_to_hub=False,
-            compile_model=run.compile,
-            compile_mode=COMPILE_MODE,
-        )
+        return fresh_config(run, device)
     cfg = PreTrainedConfig.from_pretrained(run.model)
-    if not isinstance(cfg, SmolVLAConfig):
-        raise PolicyError(f"Model {run.model!r} is a {cfg.type!r} policy; zk0 fine-tunes SmolVLA policies only.")
+    if cfg.type not in POLICIES:
+        raise PolicyError(
+            f"Model {run.model!r} is a lerobot policy of type {cfg.type!r}; zk0 federates the types {list(POLICIES)}."
+        )
+    if cfg.type != run.policy:
+        raise PolicyError(
+            f"Model {run.model!r} is a lerobot policy of type {cfg.type!r} and the run says policy={run.policy!r}; "
+            f"set policy={cfg.type!r} to fine-tune it."
+        )
+    if getattr(cfg, "pretrained_backbone_weights", None):
+        # ACT builds its ResNet with torchvision's ImageNet weights (a download) before the
+        # checkpoint's own weights replace them: build it empty, as nothing here can download.
+        cfg.pretrained_backbone_weights = None
     cfg.pretrained_path = Path(run.model) if Path(run.model).is_dir() else run.model
     cfg.optimizer_lr = run.lr
     cfg.device = device.type
     cfg.push_to_hub = False
-    cfg.compile_model, cfg.compile_mode = run.compile, COMPILE_MODE
+    if hasattr(cfg, "compile_model"):
+        cfg.compile_model, cfg.compile_mode = run.compile, COMPILE_MODE
     return cfg
 
 
@@ -121,7 +115,7 @@ def model_features(
     renamed = {rename.get(key, key): ft for key, ft in features.items()}
     for key in ("observation.state", "action"):
         if key not in renamed:
-            raise PolicyError(f"Dataset {entry.name!r} has no {key!r} feature; SmolVLA needs joint state and actions.")
+            raise PolicyError(f"Dataset {entry.name!r} has no {key!r} feature; the policy needs joint state and actions.")
         if expected and key in expected and tuple(expected[key].shape) != tuple(renamed[key].shape):
             raise PolicyError(
                 f"Dataset {entry.name!r} has {key!r} of shape {list(renamed[key].shape)}; "
@@ -140,11 +134,12 @@ def model_features(
 def build_policy(
     run: RunConfig, meta: LeRobotDatasetMetadata, entry: DatasetEntry, registry_cameras: list[str]
 ) -> PolicyBundle:
-    """Build SmolVLA + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``,
+    """Build the policy + processors for one dataset with lerobot's ``make_policy``/``make_pre_post_processors``,
     wrapped with LoRA adapters when the run says ``peft = "lora"`` (zk0.learning.adapters).
 
     The model's cameras are a pretrained policy's own image inputs, or for a fresh policy the
-    registry's mapping targets; cameras this dataset lacks become SmolVLA empty-camera slots.
+    registry's mapping targets; cameras this dataset lacks become SmolVLA empty-camera slots, and
+    a policy without such slots (ACT) refuses the dataset in one sentence.
     """
     device = resolve_device(run.device)
     if run.compile:
@@ -159,7 +154,15 @@ def build_policy(
         features = model_features(meta, entry, model_cameras, expected=pretrained)
     rename = entry.rename_map()
     present = {rename.get(key, key) for key in meta.camera_keys}  # what the dataset really records
-    cfg.empty_cameras = sum(1 for k, ft in features.items() if ft.type is FeatureType.VISUAL and k not in present)
+    missing = sorted(k for k, ft in features.items() if ft.type is FeatureType.VISUAL and k not in present)
+    if hasattr(cfg, "empty_cameras"):
+        cfg.empty_cameras = len(missing)
+    elif missing:
+        raise PolicyError(
+            f"Dataset {entry.name!r} records nothing for the model's camera input(s) {missing}, and {name_of(cfg)} has "
+            f"no empty-camera slots (SmolVLA has); map one of its cameras {sorted(meta.camera_keys)} onto each in its "
+            "registry entry (cameras = {...}), or federate only datasets that record every model camera."
+        )
     torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
     policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
     if run.peft == "lora":

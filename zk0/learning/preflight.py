@@ -104,7 +104,7 @@ def _check_local_layout(entry: DatasetEntry, root: Path) -> None:
 def _check_features(entry: DatasetEntry, meta: LeRobotDatasetMetadata, inputs: ModelInputs) -> None:
     for key in SIZED:
         if key not in meta.features:
-            raise DataError(f"Dataset {entry.name!r} has no {key!r} feature; SmolVLA needs joint state and actions.")
+            raise DataError(f"Dataset {entry.name!r} has no {key!r} feature; the policy needs joint state and actions.")
         shape, expected = tuple(meta.features[key]["shape"]), inputs.shapes.get(key)
         if expected is not None and shape != expected:
             raise DataError(
@@ -113,7 +113,7 @@ def _check_features(entry: DatasetEntry, meta: LeRobotDatasetMetadata, inputs: M
             )
     recorded = sorted(key.removeprefix("observation.images.") for key in meta.camera_keys)
     if not recorded:
-        raise DataError(f"Dataset {entry.name!r} records no camera; SmolVLA needs at least one camera image.")
+        raise DataError(f"Dataset {entry.name!r} records no camera; the policy needs at least one camera image.")
     for camera in entry.cameras:
         if camera not in recorded:
             raise DataError(

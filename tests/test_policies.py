@@ -1,0 +1,152 @@
+"""ACT beside SmolVLA: the ``policy`` key, built by lerobot's factories offline, refused in one
+sentence where a combination cannot work, and federated through `flwr run` into checkpoints that
+lerobot's own loader and `lerobot-eval` take."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from zk0.config import ConfigError, from_run_config
+from zk0.data.assets import ensure_dataset
+from zk0.data.loaders import open_metadata
+from zk0.data.registry import load_registry
+from zk0.learning.policy import PolicyError, build_policy, get_trainable
+
+SIM_REGISTRY = "configs/sim-registry.toml"
+SIM_CAMERAS = {"observation.images.front": "observation.images.camera1", "observation.images.wrist": "observation.images.camera2"}
+
+
+@pytest.mark.parametrize(
+    ("config", "said"),
+    [
+        ({"policy": "pi0"}, "Run-config key 'policy' got 'pi0'; expected one of ['smolvla', 'act']."),
+        (
+            {"policy": "act", "model": "tiny-128"},
+            "Run-config key 'model' got 'tiny-128', a size of SmolVLA's backbone, and policy='act'; expected 'tiny', "
+            "'full-size' or a checkpoint folder.",
+        ),
+        (
+            {"policy": "act", "peft": "lora", "model": "some/checkpoint"},
+            "Run-config key 'peft' = 'lora' adapts SmolVLA, and policy='act' trains in full; expected peft='none'.",
+        ),
+    ],
+)
+def test_a_policy_zk0_cannot_build_is_refused_in_one_sentence(config, said):
+    with pytest.raises(ConfigError) as refused:
+        from_run_config(config)
+    assert str(refused.value) == said
+
+
+def act_bundle(registry, **run):
+    entry = registry.clients[0]
+    return build_policy(from_run_config({"policy": "act", **run}), open_metadata(entry), entry, registry.model_cameras())
+
+
+def test_act_is_built_from_random_weights_trains_everything_and_is_the_same_on_every_party(registry):
+    """No ImageNet download: the ResNet starts from the run's seed, so two parties' starting models
+    are equal, and every parameter (the ResNet's too) is trainable and travels."""
+    first, second = act_bundle(registry), act_bundle(registry)
+    assert type(first.policy).__name__ == "ACTPolicy" and first.policy.config.pretrained_backbone_weights is None
+    assert first.trainable_names == [name for name, _ in first.policy.named_parameters()]
+    assert any(name.startswith("model.backbone.") for name in first.trainable_names)
+    a, b = get_trainable(first).to_torch_state_dict(), get_trainable(second).to_torch_state_dict()
+    assert all(torch.equal(a[name], b[name]) for name in a)
+    assert first.policy.config.dim_model == 128, "tiny: a CPU size"
+    assert act_bundle(registry, model="full-size").policy.config.dim_model == 512, "lerobot's default"
+
+
+def test_a_checkpoint_of_another_type_or_one_naming_imagenet_weights(registry, tmp_path):
+    """An ACT checkpoint with the default policy is refused in one sentence naming the key to set;
+    one whose config names torchvision's ImageNet weights (as lerobot's own ACT checkpoints do)
+    builds offline, its weights the checkpoint's."""
+    bundle = act_bundle(registry)
+    checkpoint = tmp_path / "act"
+    for part in (bundle.policy, bundle.preprocessor, bundle.postprocessor):
+        part.save_pretrained(checkpoint)
+    with pytest.raises(PolicyError) as refused:
+        build_policy(from_run_config({"model": str(checkpoint)}), None, registry.clients[0], [])
+    assert str(refused.value) == (
+        f"Model '{checkpoint}' is a lerobot policy of type 'act' and the run says policy='smolvla'; "
+        "set policy='act' to fine-tune it."
+    )
+    config = json.loads((checkpoint / "config.json").read_text())
+    config["pretrained_backbone_weights"] = "ResNet18_Weights.IMAGENET1K_V1"
+    (checkpoint / "config.json").write_text(json.dumps(config))
+    loaded = act_bundle(registry, model=str(checkpoint))
+    saved, start = get_trainable(loaded).to_torch_state_dict(), get_trainable(bundle).to_torch_state_dict()
+    assert all(torch.equal(saved[name], start[name]) for name in start)
+
+
+def test_act_refuses_a_dataset_without_every_model_camera_in_one_sentence(registry):
+    """SmolVLA fills a camera a dataset lacks with an empty slot; ACT has none, so it says what to map."""
+    entry = registry.clients[0]
+    one = replace(entry, cameras=dict(list(entry.cameras.items())[:1]))
+    run = from_run_config({"policy": "act"})
+    with pytest.raises(PolicyError) as refused:
+        build_policy(run, open_metadata(one), one, registry.model_cameras())
+    said = str(refused.value)
+    assert said.startswith(f"Dataset {entry.name!r} records nothing for the model's camera input(s) ")
+    assert "ACT has no empty-camera slots" in said and "\n" not in said
+
+
+@pytest.mark.e2e
+@pytest.mark.allowance(300)
+def test_an_act_federation_rolls_out_checkpoints_continues_and_loads_in_lerobot(flower_env, tmp_path):
+    """Two simulated owners train ACT from their frames for two rounds through `flwr run`, with
+    personal models and closed-loop evaluation; the checkpoint is ACT to lerobot's own loader and
+    `lerobot-eval` rolls it out in zk0's env; resumed after round 1, the run ends with the same model."""
+    from lerobot.configs import PreTrainedConfig
+    from lerobot.policies.factory import get_policy_class
+    from safetensors.torch import load_file
+
+    from zk0.deployment.simulation import cpu_federation, flwr_run
+
+    for entry in load_registry(SIM_REGISTRY).entries:
+        ensure_dataset(entry.name)
+    out = tmp_path / "outputs"
+    run_config = (
+        f"policy='act' registry='{SIM_REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=1 "
+        "num-server-rounds=2 local-steps=2 batch-size=2 eval-batches=1 checkpoint-interval=1 personal-steps=1"
+    )
+    log = flwr_run(flower_env, f"{run_config} output-dir='{out}'", cpu_federation(2, actors=1))
+    runs = list(out.iterdir()) if out.exists() else []
+    assert len(runs) == 1, log[-3000:]
+    run_dir = runs[0]
+    assert "[zk0] Model: tiny ACT (" in log and "Round 2/2: 2 clients trained" in log, log[-3000:]
+    assert "Personal models after round 2" in log
+    for client in ("client_0", "client_1"):
+        assert "and built ACT (" in (run_dir / "clients" / client / "client.log").read_text()
+
+    best = run_dir / "models" / "best"
+    config = PreTrainedConfig.from_pretrained(best)
+    assert config.type == "act" and config.pretrained_backbone_weights is None, "it loads offline"
+    assert type(get_policy_class(config.type).from_pretrained(best)).__name__ == "ACTPolicy"
+    done = subprocess.run(
+        [str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={best}", "--env.type=zk0_so101",
+         "--env.episode_length=20", "--eval.n_episodes=1", "--eval.batch_size=1", "--policy.device=cpu",
+         f"--rename_map={json.dumps(SIM_CAMERAS)}", f"--output_dir={tmp_path / 'lerobot-eval'}"],
+        capture_output=True, text=True, timeout=600, check=False, env={**os.environ, "MUJOCO_GL": "egl"},
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads((tmp_path / "lerobot-eval" / "eval_info.json").read_text())["overall"]["n_episodes"] == 1
+
+    final = load_file(run_dir / "models" / "checkpoint_round_2" / "model.safetensors")
+    interrupted = tmp_path / "resumed" / run_dir.name  # as an interruption after round 1's checkpoint leaves it
+    shutil.copytree(run_dir, interrupted)
+    shutil.rmtree(interrupted / "models" / "checkpoint_round_2")
+    for state in interrupted.glob("clients/*/trainer_state/round_2.safetensors"):
+        state.unlink()
+    log = flwr_run(
+        flower_env, f"{run_config} output-dir='{interrupted.parent}' resume-from='{interrupted}'", cpu_federation(2, actors=1)
+    )
+    resumed = load_file(interrupted / "models" / "checkpoint_round_2" / "model.safetensors")
+    assert all(torch.equal(resumed[name], final[name]) for name in final), log[-3000:]

@@ -1,0 +1,80 @@
+"""The lerobot policy types zk0 federates, and the config of a fresh one of each.
+
+``policy`` (run config) names the type a fresh model is built as; ``model`` its size: ``tiny``
+for a CPU, ``full-size`` for lerobot's own defaults. A checkpoint given as ``model`` brings its
+own type and config (zk0.learning.policy reads them).
+
+- **smolvla:** SmolVLA on an offline SmolVLM-shaped backbone with random weights, frozen as
+  SmolVLA freezes it (zk0.data.assets generates it; ``tiny``, ``tiny-128`` and ``full-size``).
+- **act:** lerobot's ACT, trained end to end, its ResNet-18 included. lerobot's default starts
+  that ResNet from torchvision's ImageNet weights, a download no machine here can make, so it
+  starts from random weights (``pretrained_backbone_weights = None``). ``tiny`` keeps ACT's
+  architecture at a width and depth one CPU step can afford (the transformer is small next to
+  the ResNet, which dominates the step; docs/performance.md); ``full-size`` is lerobot's default.
+"""
+
+from __future__ import annotations
+
+import torch
+from lerobot.configs import PreTrainedConfig
+from lerobot.policies.act.configuration_act import ACTConfig
+from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+from transformers import AutoConfig
+
+from zk0.config import RunConfig
+from zk0.data.assets import OFFLINE_BACKBONES, ensure_backbone
+
+# torch.compile mode for `compile = true`: lerobot's default, max-autotune, spends minutes
+# benchmarking kernels in every new process; "default" measured 0.157 s/step at batch 64 on an
+# H100 against 0.288 s eager (docs/performance.md).
+COMPILE_MODE = "default"
+
+# ACT at ``model = "tiny"``: a quarter of the default width, two encoder layers and lerobot's one
+# decoder layer (the VAE stays: its KL term is part of ACT's loss).
+TINY_ACT = {"dim_model": 128, "dim_feedforward": 512, "n_heads": 4, "n_encoder_layers": 2, "n_vae_encoder_layers": 2}
+
+# What a lerobot policy type is called where a sentence names it.
+NAMES = {"smolvla": "SmolVLA", "act": "ACT"}
+
+
+def name_of(cfg: PreTrainedConfig) -> str:
+    """A policy config's type as people write it (SmolVLA, ACT)."""
+    return NAMES.get(cfg.type, cfg.type)
+
+
+def fresh_config(run: RunConfig, device: torch.device) -> PreTrainedConfig:
+    """The config of a fresh ``run.policy`` of size ``run.model``, on ``device``."""
+    return {"smolvla": smolvla_config, "act": act_config}[run.policy](run, device)
+
+
+def smolvla_config(run: RunConfig, device: torch.device) -> SmolVLAConfig:
+    """SmolVLA on the offline backbone of ``run.model``, at that backbone's image size."""
+    backbone = ensure_backbone(kind=OFFLINE_BACKBONES[run.model])
+    image_size = AutoConfig.from_pretrained(backbone).vision_config.image_size
+    return SmolVLAConfig(
+        vlm_model_name=str(backbone),
+        load_vlm_weights=False,
+        resize_imgs_with_padding=(image_size, image_size),
+        chunk_size=run.chunk_size,
+        n_action_steps=run.chunk_size,
+        optimizer_lr=run.lr,
+        device=device.type,
+        push_to_hub=False,
+        compile_model=run.compile,
+        compile_mode=COMPILE_MODE,
+    )
+
+
+def act_config(run: RunConfig, device: torch.device) -> ACTConfig:
+    """ACT from random weights, its backbone at the run's learning rate (lerobot's 1e-5 for the
+    backbone assumes ImageNet features to keep; these are learnt from the owners' frames)."""
+    return ACTConfig(
+        pretrained_backbone_weights=None,
+        chunk_size=run.chunk_size,
+        n_action_steps=run.chunk_size,
+        optimizer_lr=run.lr,
+        optimizer_lr_backbone=run.lr,
+        device=device.type,
+        push_to_hub=False,
+        **(TINY_ACT if run.model == "tiny" else {}),
+    )
