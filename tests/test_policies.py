@@ -30,9 +30,9 @@ SIM_CAMERAS = {"observation.images.front": "observation.images.camera1", "observ
     [
         ({"policy": "pi0"}, "Run-config key 'policy' got 'pi0'; expected one of ['smolvla', 'act']."),
         (
-            {"policy": "act", "model": "tiny-128"},
-            "Run-config key 'model' got 'tiny-128', a size of SmolVLA's backbone, and policy='act'; expected 'tiny', "
-            "'full-size' or a checkpoint folder.",
+            {"policy": "act", "compile": True},
+            "Run-config key 'compile' = true compiles SmolVLA's training forward (lerobot's compile_model), and "
+            "policy='act' has no such option; expected compile=false.",
         ),
         (
             {"policy": "act", "peft": "lora", "model": "some/checkpoint"},

@@ -285,13 +285,13 @@ def _check_server_optimiser(cfg: RunConfig) -> None:
 
 
 def _check_policy(cfg: RunConfig) -> None:
-    """A policy type zk0 builds, at a size that type has (``tiny-128`` is a SmolVLM backbone's)."""
+    """A policy type zk0 builds; LoRA only where lerobot adapts it (SmolVLA)."""
     if cfg.policy not in POLICIES:
         raise ConfigError(f"Run-config key 'policy' got {cfg.policy!r}; expected one of {list(POLICIES)}.")
-    if cfg.policy != "smolvla" and cfg.model == "tiny-128":
+    if cfg.policy != "smolvla" and cfg.compile:
         raise ConfigError(
-            f"Run-config key 'model' got 'tiny-128', a size of SmolVLA's backbone, and policy={cfg.policy!r}; "
-            "expected 'tiny', 'full-size' or a checkpoint folder."
+            f"Run-config key 'compile' = true compiles SmolVLA's training forward (lerobot's compile_model), and "
+            f"policy={cfg.policy!r} has no such option; expected compile=false."
         )
     if cfg.policy != "smolvla" and cfg.peft != "none":
         raise ConfigError(

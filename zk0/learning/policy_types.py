@@ -8,7 +8,9 @@ own type and config (zk0.learning.policy reads them).
   SmolVLA freezes it (zk0.data.assets generates it; ``tiny``, ``tiny-128`` and ``full-size``).
 - **act:** lerobot's ACT, trained end to end, its ResNet-18 included. lerobot's default starts
   that ResNet from torchvision's ImageNet weights, a download no machine here can make, so it
-  starts from random weights (``pretrained_backbone_weights = None``). ``tiny`` keeps ACT's
+  starts from random weights (``pretrained_backbone_weights = None``). ACT sees each dataset's
+  frames at their own size, so ``tiny-128`` (the simulator preset's SmolVLA size) is its
+  ``tiny`` too. ``tiny`` keeps ACT's
   architecture at a width and depth one CPU step can afford (the transformer is small next to
   the ResNet, which dominates the step; docs/performance.md); ``full-size`` is lerobot's default.
 """
@@ -76,5 +78,5 @@ def act_config(run: RunConfig, device: torch.device) -> ACTConfig:
         optimizer_lr_backbone=run.lr,
         device=device.type,
         push_to_hub=False,
-        **(TINY_ACT if run.model == "tiny" else {}),
+        **({} if run.model == "full-size" else TINY_ACT),
     )
