@@ -1,4 +1,4 @@
-"""Sim learning: does a centrally trained SmolVLA pick the cube up? Success rate along training.
+"""Sim learning: does a centrally trained policy pick the cube up? Success rate along training.
 
 One policy is trained on every simulated owner's demonstrations pooled (the study's centralised
 baseline, ``zk0.learning.training.PooledTrainer``: each batch through its own client's processors) and
@@ -7,8 +7,8 @@ conditions, as the federation's closed-loop evaluation does: success, graded rat
 grasped, lifted) and CPU time, so a learning curve in success rate rather than action MSE. The
 first episode of each rollout is saved as a video next to the JSON.
 
-    python -m zk0.bench sim-learning [--model tiny-128] [--demos 100] [--steps 8000] [--every 2000]
-        [--sim-episodes 20] [--registry configs/sim-registry.toml] [--json out.json]
+    python -m zk0.bench sim-learning [--policy smolvla] [--model tiny-128] [--demos 100] [--steps 8000]
+        [--every 2000] [--sim-episodes 20] [--registry configs/sim-registry.toml] [--json out.json]
 
 ``--registry configs/sim-cube-registry.toml`` trains and rolls out with the target cube's xy in the
 state (privileged; docs/learning.md): what the policy does once it need not locate the cube.
@@ -22,11 +22,12 @@ from pathlib import Path
 from zk0.bench.client import write_json
 from zk0.bench.models import generate
 from zk0.common.errors import OneSentenceParser, positive
-from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.config import OFFLINE_MODELS, POLICIES, RunConfig
 from zk0.data.loaders import open_metadata
 from zk0.data.registry import load_registry
 from zk0.federation.client import build_client
 from zk0.learning.policy import build_policy, set_trainable, snapshot
+from zk0.learning.policy_types import NAMES
 from zk0.learning.training import PooledTrainer
 
 REGISTRY = "configs/sim-registry.toml"
@@ -68,6 +69,7 @@ def rollout_rows(run: RunConfig, steps: int, every: int, episodes: int, videos: 
 def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench sim-learning", description=__doc__.splitlines()[0])
+    parser.add_argument("--policy", default="smolvla", choices=POLICIES, help="the lerobot policy type trained")
     parser.add_argument("--model", default="tiny-128", choices=OFFLINE_MODELS)
     parser.add_argument("--demos", type=positive(int), default=100, help="demonstrations per simulated client")
     parser.add_argument("--steps", type=positive(int), default=8000, help="centralised training steps")
@@ -86,14 +88,14 @@ def main(argv: list[str]) -> int:
     registry = load_registry(args.registry)
     generate(registry, args.demos)
     server = registry.server
-    run = RunConfig(registry=args.registry, server_eval_dataset=server.name, model=args.model,
+    run = RunConfig(registry=args.registry, server_eval_dataset=server.name, model=args.model, policy=args.policy,
                     batch_size=args.batch_size, lr=args.lr, local_steps=args.steps)
     videos = Path(args.json).with_suffix("") if args.json else None
     if videos:
         videos.mkdir(parents=True, exist_ok=True)
-    print(f"centralised {args.model} SmolVLA on {len(registry.clients)} simulated owners' demonstrations "
+    print(f"centralised {args.model} {NAMES[args.policy]} on {len(registry.clients)} simulated owners' demonstrations "
           f"({args.demos} each), rolled out on {args.sim_episodes} seeded episodes of {server.name}:")
     rows = rollout_rows(run, args.steps, args.every, args.sim_episodes, videos)
-    write_json(args.json, {"model": args.model, "registry": args.registry, "demos-per-client": args.demos,
+    write_json(args.json, {"policy": args.policy, "model": args.model, "registry": args.registry, "demos-per-client": args.demos,
                            "batch-size": args.batch_size, "lr": args.lr, "sim-episodes": args.sim_episodes, "rows": rows})
     return 0

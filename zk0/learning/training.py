@@ -354,7 +354,7 @@ class PooledTrainer(LocalTrainer):
         """The batch's camera frames resized and padded as SmolVLA's own ``prepare_images`` does (the
         same call, which then leaves them as they are), so the clients' batches can be joined."""
         cfg = self.bundle.policy.config
-        if cfg.resize_imgs_with_padding is None:
+        if getattr(cfg, "resize_imgs_with_padding", None) is None:  # ACT has none: its frames go in as they are
             return batch
         width, height = cfg.resize_imgs_with_padding
         return batch | {key: resize_with_pad(batch[key], height, width, pad_value=0) for key in cfg.image_features}
