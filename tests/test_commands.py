@@ -75,6 +75,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         ),
         (
             bench,
+            ["exchange", "--policy", "act", "--peft", "lora"],
+            "python -m zk0.bench exchange: --peft lora adapts SmolVLA, and --policy is act; expected --peft none; "
+            "see python -m zk0.bench exchange --help.",
+        ),
+        (
+            bench,
             ["study", "--rounds", "0"],
             "python -m zk0.bench study: argument --rounds: got '0'; expected int > 0; "
             "see python -m zk0.bench study --help.",

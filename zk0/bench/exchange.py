@@ -1,7 +1,8 @@
 """Exchange benchmark: what one client sends and receives per round, and what it costs to handle.
 
-Builds the global SmolVLA exactly as the ServerApp does (tiny, or with ``--full-size`` the
-SmolVLM2-500M-shaped backbone offline with random weights: realistic sizes without the Hub),
+Builds the global policy exactly as the ServerApp does (SmolVLA, or ACT with ``--policy act``;
+tiny, or with ``--full-size`` SmolVLA's SmolVLM2-500M-shaped backbone or lerobot's default ACT,
+offline with random weights: realistic sizes without the Hub),
 then for each wire dtype measures the bytes per client per direction, the client's encode
 time, and the server's decode + FedAvg time for ``--clients`` updates (Flower's own
 ``aggregate_arrayrecords``), against the whole state dict the seed project sent.
@@ -10,7 +11,8 @@ With ``--peft lora`` the model is first saved as a pretrained starting point (le
 pretrained weights) and the bytes of LoRA's adapters, in both averaging modes and with SmolVLA's
 small projections trained in full next to them, are measured next to the same weights trained in full.
 
-    python -m zk0.bench exchange [--full-size] [--peft lora] [--clients 4] [--repeat 3] [--json out.json]
+    python -m zk0.bench exchange [--policy smolvla] [--full-size] [--peft lora] [--clients 4] [--repeat 3]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from flwr.serverapp.strategy.strategy_utils import aggregate_arrayrecords
 
 from zk0.bench.client import starting_checkpoint
 from zk0.common.errors import OneSentenceParser, positive
-from zk0.config import RunConfig
+from zk0.config import POLICIES, RunConfig
 from zk0.data.loaders import open_metadata
 from zk0.data.registry import load_registry
 from zk0.federation.wire import decode, encode
@@ -67,7 +69,7 @@ def variants(args) -> list[tuple[str, RunConfig]]:
     projections trained in full (zk0.learning.adapters)."""
     model = "full-size" if args.full_size else "tiny"
     if args.peft == "none":
-        return [("full", RunConfig(model=model, device="cpu"))]
+        return [("full", RunConfig(model=model, device="cpu", policy=args.policy))]
     start = starting_checkpoint(model)
     lora = {"peft": "lora", "lora_rank": args.lora_rank}
     return [
@@ -81,7 +83,8 @@ def variants(args) -> list[tuple[str, RunConfig]]:
 def build_parser() -> OneSentenceParser:
     """The benchmark's command line (the docs' commands are checked against it)."""
     parser = OneSentenceParser(prog="python -m zk0.bench exchange", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
+    parser.add_argument("--policy", choices=POLICIES, default="smolvla", help="the lerobot policy type")
+    parser.add_argument("--full-size", action="store_true", help="SmolVLA's SmolVLM2-500M-shaped backbone, or lerobot's default ACT (random weights)")
     parser.add_argument("--peft", choices=["none", "lora"], default="none", help="lora: also LoRA's adapters")
     parser.add_argument("--lora-rank", type=positive(int), default=RunConfig.lora_rank)
     parser.add_argument("--clients", type=int, default=4)
@@ -93,6 +96,8 @@ def build_parser() -> OneSentenceParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.peft == "lora" and args.policy != "smolvla":
+        parser.error(f"--peft lora adapts SmolVLA, and --policy is {args.policy}; expected --peft none")
 
     registry = load_registry()
     entry = registry.get("synth-so100-eval")
