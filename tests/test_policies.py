@@ -98,6 +98,19 @@ def test_act_refuses_a_dataset_without_every_model_camera_in_one_sentence(regist
     assert "ACT has no empty-camera slots" in said and "\n" not in said
 
 
+def test_the_policies_benchmark_builds_each_type_offline_or_says_why_not(tmp_path, capsys):
+    """A row per lerobot policy type: ACT builds as zk0 federates it; TD-MPC is refused by lerobot
+    itself in its own words (it takes one camera, the quick run's owners have two)."""
+    from zk0.bench.policies import main
+
+    assert main(["--types", "act", "tdmpc", "--json", str(tmp_path / "policies.json")]) == 0
+    act, tdmpc = json.loads((tmp_path / "policies.json").read_text())["rows"]
+    assert act == act | {"type": "act", "builds": True, "parameters": 12_308_102, "federated": True}
+    assert tdmpc["builds"] is False and tdmpc["reason"].startswith("ValueError: TDMPCConfig handles at most one image")
+    printed = capsys.readouterr().out
+    assert "act        yes" in printed and "federated (policy='act')" in printed and "tdmpc      no" in printed
+
+
 @pytest.mark.e2e
 @pytest.mark.allowance(300)
 def test_an_act_federation_rolls_out_checkpoints_continues_and_loads_in_lerobot(flower_env, tmp_path):

@@ -14,6 +14,7 @@ from zk0.bench import (
     learning,
     memory,
     owners,
+    policies,
     privacy,
     robust,
     robustness,
@@ -50,6 +51,7 @@ BENCHMARKS = {
     "privacy": privacy,
     "secagg": secagg,
     "container": container,
+    "policies": policies,
 }
 
 
