@@ -75,6 +75,12 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
         ),
         (
             bench,
+            ["step", "--policy", "act", "--peft", "lora"],
+            "python -m zk0.bench step: Run-config key 'peft' = 'lora' adapts SmolVLA, and policy='act' trains in "
+            "full; expected peft='none'.",
+        ),
+        (
+            bench,
             ["exchange", "--policy", "act", "--peft", "lora"],
             "python -m zk0.bench exchange: --peft lora adapts SmolVLA, and --policy is act; expected --peft none; "
             "see python -m zk0.bench exchange --help.",

@@ -27,6 +27,7 @@ from zk0.bench import (
     step,
     study,
 )
+from zk0.common.errors import Zk0Error
 from zk0.data.assets import ensure_all
 
 # Each module has ``main(argv)`` and ``build_parser()``.
@@ -71,7 +72,11 @@ def main(argv: list[str]) -> int:
         return 2
     if not set(argv[1:]) & {"-h", "--help"}:
         ensure_all()  # the offline backbone and datasets: generated here, once, never by opening them
-    return BENCHMARKS[argv[0]].main(argv[1:])
+    try:
+        return BENCHMARKS[argv[0]].main(argv[1:])
+    except Zk0Error as err:  # a combination zk0 refuses (ACT with LoRA): its sentence, not a traceback
+        print(f"python -m zk0.bench {argv[0]}: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

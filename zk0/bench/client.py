@@ -9,7 +9,7 @@ from pathlib import Path
 
 from zk0.artifacts.run_folder import save_checkpoint
 from zk0.common.cache import default_cache_root
-from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.config import OFFLINE_MODELS, POLICIES, RunConfig, from_run_config
 from zk0.data.assets import ensure_dataset
 from zk0.data.assets.datasets import SPECS
 from zk0.data.loaders import open_metadata
@@ -21,7 +21,8 @@ from zk0.learning.training import LocalTrainer
 
 def add_client_options(parser: argparse.ArgumentParser) -> None:
     """The options both in-process benchmarks take: model, dataset, batch, data path, device, output."""
-    parser.add_argument("--full-size", action="store_true", help="SmolVLM2-500M-shaped backbone (random weights)")
+    parser.add_argument("--policy", choices=POLICIES, default="smolvla", help="the lerobot policy type (run-config policy)")
+    parser.add_argument("--full-size", action="store_true", help="SmolVLA's SmolVLM2-500M-shaped backbone or lerobot's default ACT (random weights)")
     parser.add_argument("--dataset", help="a registry name or synth-so100-480p (default: the first client's)")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--num-workers", type=int, default=0, help="DataLoader workers (-1 = the CPUs minus one)")
@@ -78,7 +79,8 @@ def bench_client(
     entry = bench_entry(registry, args.dataset)
     model = "full-size" if args.full_size else "tiny"
     run = RunConfig(
-        model=starting_checkpoint(model) if args.peft == "lora" else model,
+        model=starting_checkpoint(model) if args.peft == "lora" and args.policy == "smolvla" else model,
+        policy=args.policy,
         peft=peft or args.peft,
         batch_size=args.batch_size,
         num_workers=args.num_workers,
@@ -88,6 +90,7 @@ def bench_client(
         num_server_rounds=1,
         local_steps=local_steps,
     )
+    from_run_config(run.to_flat())  # a combination a run would refuse (ACT with LoRA) is refused here too
     return build_client(run, entry, registry.model_cameras()).trainer, registry, entry
 
 
