@@ -68,3 +68,12 @@ def test_zk0_check_prints_the_run_and_the_sized_federation_config_train_sh_passe
         "local-steps=3",
         "num-supernodes=4 client-resources-num-cpus=1 client-resources-num-gpus=0.0",
     ]
+
+
+def test_act_is_sized_as_act_not_as_smolvla():
+    """lerobot's default ACT trains all of its 52 M parameters: more than the tiny SmolVLA's client,
+    far less than full-size SmolVLA's (which 16 GiB cannot hold beside its server, above)."""
+    assert session_bytes("tiny", "act") > session_bytes("tiny")
+    sized, said = sized_federation(RunConfig(model="full-size", policy="act"), {**CPU, "init-args-num-cpus": 4},
+                                   available=int(16 * GIB))  # fmt: skip
+    assert sized == {**CPU, "init-args-num-cpus": 3}, said

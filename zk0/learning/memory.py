@@ -27,11 +27,19 @@ GIB = 2**30
 PROCESS_BYTES = int(0.85 * GIB)  # Python, torch and lerobot imported (docs/performance.md)
 # A built client after its first steps, beyond its process's imports (docs/performance.md, batch 2-8):
 # the policy, its processors, the dataset and AdamW's moments.
-SESSION_BYTES = {"tiny": int(0.1 * GIB), "tiny-128": int(0.15 * GIB), "full-size": int(3.7 * GIB)}
+# ACT trains all of itself: 0.4 GiB tiny, 1.1 GiB at lerobot's default size on the 64 px videos
+# (2026-12-06, `python -m zk0.bench memory --policy act [--full-size]`), more on larger frames.
+SESSION_BYTES = {
+    "smolvla": {"tiny": int(0.1 * GIB), "tiny-128": int(0.15 * GIB), "full-size": int(3.7 * GIB)},
+    "act": {"tiny": int(0.6 * GIB), "tiny-128": int(0.6 * GIB), "full-size": int(1.5 * GIB)},
+}
 # What the server holds for each client of a round besides its own model: the update it sent, the
 # reply and its fp32 decoding (measured: a full-size simulation of 4 clients, its server process
 # 10.2 GB at the round's end, 2026-12-06).
-EXCHANGE_BYTES = {"tiny": int(0.01 * GIB), "tiny-128": int(0.01 * GIB), "full-size": int(1.25 * GIB)}
+EXCHANGE_BYTES = {
+    "smolvla": {"tiny": int(0.01 * GIB), "tiny-128": int(0.01 * GIB), "full-size": int(1.25 * GIB)},
+    "act": {"tiny": int(0.1 * GIB), "tiny-128": int(0.1 * GIB), "full-size": int(0.45 * GIB)},  # every weight travels
+}
 # A checkpoint's weights, fp32, become about this many times their bytes once trained (full-size: 1.8 GB
 # of weights, 3.7 GiB built and stepped: gradients and two moments of the trainable fifth, buffers),
 # and the server holds about this share of them for each client of a round.
@@ -50,19 +58,20 @@ def weights_bytes(model: str) -> int:
     return sum(p.stat().st_size for p in folder.glob("*.safetensors")) if folder.is_dir() else 0
 
 
-def session_bytes(model: str) -> int | None:
-    """What one built client of ``model`` holds (an offline name, or a local checkpoint folder's
-    weights scaled); None where it cannot be told before the model is fetched (a Hub id)."""
-    if model in SESSION_BYTES:
-        return SESSION_BYTES[model]
+def session_bytes(model: str, policy: str = "smolvla") -> int | None:
+    """What one built client of ``model`` holds (an offline size of ``policy``, or a local
+    checkpoint folder's weights scaled); None where it cannot be told before the model is fetched
+    (a Hub id)."""
+    if model in SESSION_BYTES[policy]:
+        return SESSION_BYTES[policy][model]
     return int(WEIGHTS_FACTOR * weights_bytes(model)) or None
 
 
-def server_bytes(model: str, clients: int) -> int:
+def server_bytes(model: str, clients: int, policy: str = "smolvla") -> int:
     """What a simulation's server process holds at a round's end with ``clients`` clients: its
     imports, the global model as a client holds one, and each client's exchange."""
-    exchange = EXCHANGE_BYTES.get(model) or int(EXCHANGE_FACTOR * weights_bytes(model))
-    return PROCESS_BYTES + (session_bytes(model) or 0) + clients * exchange
+    exchange = EXCHANGE_BYTES[policy].get(model) or int(EXCHANGE_FACTOR * weights_bytes(model))
+    return PROCESS_BYTES + (session_bytes(model, policy) or 0) + clients * exchange
 
 
 def gib(count: float) -> str:
@@ -75,7 +84,7 @@ def sized_federation(run: RunConfig, federation: dict, available: int | None = N
     ``SHARE`` of the ``available`` memory (default: now), and a sentence saying so; unchanged, with
     None, where they fit, where the clients train on a GPU, or where the model's size is unknown.
     Raises ``NotEnoughMemory`` when not even one client fits."""
-    session = session_bytes(run.model)
+    session = session_bytes(run.model, run.policy)
     if session is None or float(federation.get("client-resources-num-gpus", 0.0)) > 0:
         return federation, None
     per_client = PROCESS_BYTES + session
@@ -84,7 +93,7 @@ def sized_federation(run: RunConfig, federation: dict, available: int | None = N
     cpus = int(federation.get("init-args-num-cpus", psutil.cpu_count() or 1))
     clients = int(federation.get("num-supernodes", 1))
     at_once = min(int(cpus // cpus_each), clients)
-    server = server_bytes(run.model, clients)
+    server = server_bytes(run.model, clients, run.policy)
     fits = int((budget - server) // per_client)
     if fits < 1:
         raise NotEnoughMemory(
@@ -106,7 +115,7 @@ def room_for_another(run: RunConfig, available: int | None = None) -> bool:
     """Whether this process may build one more client beside those it keeps: room for it and for
     one more that another simulated client process may be building at the same time. A process
     that keeps several owners' clients drops them first when memory is short."""
-    session = session_bytes(run.model)
+    session = session_bytes(run.model, run.policy)
     if session is None:
         return True
     return (psutil.virtual_memory().available if available is None else available) * SHARE >= 2 * session
