@@ -21,22 +21,29 @@ REGISTRY = "configs/sim-registry.toml"
 CONDITIONS = "sim-so101-eval"
 
 
-@pytest.fixture(scope="module")
-def bundle():
-    """An untrained tiny-128 SmolVLA with the server set's statistics: its actions wander, so two
+def untrained(policy: str):
+    """An untrained tiny-128 policy with the server set's statistics: its actions wander, so two
     paths that differ anywhere part ways at once."""
     registry = load_registry(REGISTRY)
     entry = registry.get(CONDITIONS)
     ensure_dataset(entry.name)
-    run = from_run_config({"registry": REGISTRY, "server-eval-dataset": CONDITIONS, "model": "tiny-128"})
+    run = from_run_config({"registry": REGISTRY, "server-eval-dataset": CONDITIONS, "model": "tiny-128", "policy": policy})
     return build_policy(run, open_metadata(entry), entry, registry.model_cameras())
 
 
+@pytest.fixture(scope="module")
+def bundle():
+    return untrained("smolvla")
+
+
 @pytest.mark.slow
-def test_the_fast_loop_takes_lerobots_actions_in_every_episode(bundle):
+@pytest.mark.parametrize("policy", ["smolvla", "diffusion"])
+def test_the_fast_loop_takes_lerobots_actions_in_every_episode(policy):
     """Four seeded episodes in batches of two: lerobot's ``rollout`` over a vector env of two (as
     ``eval_policy`` runs it, every frame rendered and ``select_action`` every step) and zk0's loop
-    take the same actions at every step and end the same way."""
+    take the same actions at every step and end the same way: SmolVLA asked once a chunk,
+    Diffusion Policy (two observations remembered) every step."""
+    bundle = untrained(policy)
     seed, episodes, batch = 11, 4, 2
     loop = ClosedLoop(CONDITIONS, episodes, seed, 128, 128, batch=batch)
     env = make_env(loop.config, n_envs=batch)[loop.config.type][0]

@@ -354,3 +354,20 @@ def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owne
     assert found["record-noise-multiplier"] == pytest.approx(expected)
     share = found["owner-noise-multiplier"] * math.sqrt(found["weights"])
     assert found["owners-to-match"] == math.ceil((share / found["record-noise-share"]) ** 2)
+
+
+@pytest.mark.parametrize("policy", ["act", "diffusion"])
+def test_record_level_dp_trains_every_policy_zk0_federates(registry, policy):
+    """Per-sample gradients come from one forward and backward per sample through the policy's own
+    ``forward``, not from Opacus's layer hooks, so ACT and Diffusion Policy (whose loss draws its
+    own noise and timestep) take private steps too: every parameter moves, and the step is counted."""
+    from zk0.federation.client import build_client
+    from zk0.learning.policy import snapshot
+
+    run = from_run_config({"policy": policy, "batch-size": 4, "lr": 1e-3, "dp": "record", "dp-noise-multiplier": 1.0})
+    client = build_client(run, registry.clients[0], registry.model_cameras())
+    before = snapshot(client.bundle)
+    metrics = client.trainer.fit(2, 0.0, 0)
+    after = snapshot(client.bundle)
+    assert metrics["local-steps"] == 2 and 0 < metrics["record-epsilon"] < 8.0
+    assert all(not torch.equal(before[name], after[name]) for name in before), "the noise reaches every parameter"

@@ -22,7 +22,7 @@ DEVICES = ("auto", "cpu", "cuda", "mps")
 VIDEO_BACKENDS = ("torchcodec", "pyav")
 WIRE_DTYPES = ("bfloat16", "float32")  # zk0.federation.wire encodes them
 OFFLINE_MODELS = ("tiny", "tiny-128", "full-size")  # built from a generated backbone with random weights (zk0.learning.policy)
-POLICIES = ("smolvla", "act")  # the lerobot policy types a fresh model is built as (zk0.learning.policy_types)
+POLICIES = ("smolvla", "act", "diffusion")  # the lerobot policy types a fresh model is built as (zk0.learning.policy_types)
 PEFT_METHODS = ("none", "lora")  # zk0.learning.adapters
 LORA_AVERAGES = ("b", "ab")  # what a LoRA federation trains and averages (zk0.learning.adapters)
 # SmolVLA's small state, action and time projections: by default trained in full next to the adapters
@@ -291,7 +291,7 @@ def _check_policy(cfg: RunConfig) -> None:
     if cfg.policy != "smolvla" and cfg.compile:
         raise ConfigError(
             f"Run-config key 'compile' = true compiles SmolVLA's training forward (lerobot's compile_model), and "
-            f"policy={cfg.policy!r} has no such option; expected compile=false."
+            f"zk0 compiles no other policy (policy={cfg.policy!r}); expected compile=false."
         )
     if cfg.policy != "smolvla" and cfg.peft != "none":
         raise ConfigError(

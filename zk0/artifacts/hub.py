@@ -19,7 +19,7 @@ from loguru import logger
 
 from zk0.config import DEFAULT_SERVER_LR, OFFLINE_MODELS, RunConfig
 from zk0.data.registry import DatasetEntry
-from zk0.learning.policy_types import NAMES
+from zk0.learning.policy_types import LEROBOT_EXTRAS, NAMES
 
 CARD = """---
 library_name: lerobot
@@ -119,7 +119,7 @@ def model_card(
         base_model=base_model(run),
         policy_type=run.policy,
         policy_name=NAMES[run.policy],
-        extras="feetech,smolvla" if run.policy == "smolvla" else "feetech",
+        extras=LEROBOT_EXTRAS[run.policy],
         dataset_list="\n".join(f"  - {e.repo_id}" for e in entries),
         repo_id=repo_id,
         model_name=repo_id.split("/")[-1],

@@ -3,7 +3,7 @@
 For each type, lerobot's own ``make_policy_config`` and ``make_policy`` on the features of a
 generated dataset (its state, action and the registry's two cameras), with no pretrained
 backbone weights (nothing here can download them): a row with the parameters it built, or
-lerobot's refusal (its first line). SmolVLA and ACT are built as zk0 builds them
+lerobot's refusal (its first line). SmolVLA, ACT and Diffusion Policy are built as zk0 builds them
 (``zk0.learning.policy``: SmolVLA on the tiny offline backbone) and marked as federated.
 pi0 and pi0.5 build with random weights at their full size (about 4 billion parameters, 16 GB
 in fp32): give ``--types`` without them on a small machine.

@@ -10,7 +10,9 @@ taken out. SmolVLA predicts a chunk of ``n_action_steps`` actions from one obser
 them back, so the cameras are rendered and the observation preprocessed only at the steps that
 start a chunk (nine of ten rendered frames were never read), and the policy is asked for a chunk
 with ``predict_action_chunk`` once per chunk rather than ``select_action`` every step (which
-also walked every module for ``eval()`` each time). Everything else is lerobot's path, in its
+also walked every module for ``eval()`` each time). A policy that conditions on several past
+observations (Diffusion Policy's ``n_obs_steps``) sees every step and is asked through
+``select_action`` every step, exactly as ``rollout`` asks it. Everything else is lerobot's path, in its
 order: ``preprocess_observation``, the task text, the env's and the policy's processors, the
 batch of episodes seeded ``seed, seed + 1, ...`` and stepped together (as ``eval_policy`` with a
 vector env of ``batch`` envs), the postprocessors on every action, ``is_success`` checked after
@@ -104,14 +106,18 @@ class ClosedLoop:
         ended: list[Episode | None] = [None] * len(envs)
         actions: list[list[np.ndarray]] = [[] for _ in envs]
         chunk: deque[torch.Tensor] = deque()
+        history = getattr(bundle.policy.config, "n_obs_steps", 1) > 1
         for step in range(self.config.episode_length):
             if all(e is not None for e in ended):
                 break
-            if not chunk:  # a chunk starts: only now is what the cameras see read
+            if history or not chunk:  # only now is what the cameras see read
                 if step:
                     running = zip(envs, observations, ended, strict=True)
                     observations = [env.observe() if e is None else o for env, o, e in running]
-                chunk.extend(self._predict(bundle, envs, observations))
+                if history:  # a policy that remembers past observations (Diffusion's) sees every one
+                    chunk.append(self._select(bundle, envs, observations))
+                else:
+                    chunk.extend(self._predict(bundle, envs, observations))
             action = self._postprocess(bundle, chunk.popleft())
             for i, env in enumerate(envs):
                 if ended[i]:
@@ -125,18 +131,29 @@ class ClosedLoop:
                                        actions=np.stack(actions[i]))  # fmt: skip
         return [e for e in ended if e is not None]
 
-    def _predict(self, bundle: PolicyBundle, envs: Sequence[PickCubeEnv], observations: list[dict]) -> list:
-        """The next chunk of actions for every env, as ``rollout`` prepares a vector env's observation."""
+    def _observation(self, bundle: PolicyBundle, envs: Sequence[PickCubeEnv], observations: list[dict]) -> dict:
+        """Every env's observation as ``rollout`` prepares a vector env's, through the processors."""
         stacked = {
             "pixels": {cam: np.stack([o["pixels"][cam] for o in observations]) for cam in observations[0]["pixels"]},
             "agent_pos": np.stack([o["agent_pos"] for o in observations]),
         }
         observation = preprocess_observation(stacked)
         observation["task"] = [env.task_description for env in envs]
-        observation = bundle.preprocessor(self.env_preprocessor(observation))
+        return bundle.preprocessor(self.env_preprocessor(observation))
+
+    def _predict(self, bundle: PolicyBundle, envs: Sequence[PickCubeEnv], observations: list[dict]) -> list:
+        """The next chunk of actions for every env."""
+        observation = self._observation(bundle, envs, observations)
         with torch.inference_mode():
             actions = bundle.policy.predict_action_chunk(observation)
         return list(actions.transpose(0, 1)[: bundle.policy.config.n_action_steps])
+
+    def _select(self, bundle: PolicyBundle, envs: Sequence[PickCubeEnv], observations: list[dict]) -> torch.Tensor:
+        """The next action for every env from ``select_action``, which keeps the policy's own queue
+        of observations and of the chunk it plays, as lerobot's ``rollout`` asks every step."""
+        observation = self._observation(bundle, envs, observations)
+        with torch.inference_mode():
+            return bundle.policy.select_action(observation)
 
     def _postprocess(self, bundle: PolicyBundle, action: torch.Tensor) -> np.ndarray:
         action = bundle.postprocessor(action)

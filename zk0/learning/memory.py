@@ -28,10 +28,12 @@ PROCESS_BYTES = int(0.85 * GIB)  # Python, torch and lerobot imported (docs/perf
 # A built client after its first steps, beyond its process's imports (docs/performance.md, batch 2-8):
 # the policy, its processors, the dataset and AdamW's moments.
 # ACT trains all of itself: 0.4 GiB tiny, 1.1 GiB at lerobot's default size on the 64 px videos
-# (2026-12-06, `python -m zk0.bench memory --policy act [--full-size]`), more on larger frames.
+# (2026-12-06, `python -m zk0.bench memory --policy act [--full-size]`), more on larger frames;
+# Diffusion Policy 0.38 GiB tiny, 3.7 GiB at lerobot's default (its 255 M-parameter U-Net).
 SESSION_BYTES = {
     "smolvla": {"tiny": int(0.1 * GIB), "tiny-128": int(0.15 * GIB), "full-size": int(3.7 * GIB)},
     "act": {"tiny": int(0.6 * GIB), "tiny-128": int(0.6 * GIB), "full-size": int(1.5 * GIB)},
+    "diffusion": {"tiny": int(0.6 * GIB), "tiny-128": int(0.6 * GIB), "full-size": int(4.0 * GIB)},
 }
 # What the server holds for each client of a round besides its own model: the update it sent, the
 # reply and its fp32 decoding (measured: a full-size simulation of 4 clients, its server process
@@ -39,6 +41,7 @@ SESSION_BYTES = {
 EXCHANGE_BYTES = {
     "smolvla": {"tiny": int(0.01 * GIB), "tiny-128": int(0.01 * GIB), "full-size": int(1.25 * GIB)},
     "act": {"tiny": int(0.1 * GIB), "tiny-128": int(0.1 * GIB), "full-size": int(0.45 * GIB)},  # every weight travels
+    "diffusion": {"tiny": int(0.15 * GIB), "tiny-128": int(0.15 * GIB), "full-size": int(2.3 * GIB)},  # as ACT's, per weight
 }
 # A checkpoint's weights, fp32, become about this many times their bytes once trained (full-size: 1.8 GB
 # of weights, 3.7 GiB built and stepped: gradients and two moments of the trainable fifth, buffers),

@@ -1,9 +1,9 @@
-"""The policy (SmolVLA, ACT) and its processors, built with lerobot's factories the same way on every party.
+"""The policy (SmolVLA, ACT, Diffusion Policy) and its processors, built with lerobot's factories the same way on every party.
 
 Only the trainable parameters travel between server and clients; the frozen backbone
 comes from the same base (the tiny offline backbone seeded identically, or a pretrained
 checkpoint), and its fingerprint travels in the config so a mismatch fails loudly. A policy
-trained in full (ACT) has no frozen part: every parameter travels, and every party starts from
+trained in full (ACT, Diffusion Policy) has no frozen part: every parameter travels, and every party starts from
 the same seeded weights.
 """
 
@@ -164,7 +164,12 @@ def build_policy(
             "registry entry (cameras = {...}), or federate only datasets that record every model camera."
         )
     torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
-    policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
+    try:
+        policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
+    except ValueError as err:  # lerobot's checks of what a policy type takes (Diffusion: cameras of one size)
+        raise PolicyError(
+            f"Dataset {entry.name!r} cannot feed {name_of(cfg)} as lerobot builds it: {str(err).rstrip('.')}."
+        ) from None
     if run.peft == "lora":
         policy = adapters.wrap(policy, run)  # from here on, the adapters are what trains and travels
     stats = rename_stats(meta.stats, entry.rename_map())

@@ -23,6 +23,7 @@ from flwr.app import ArrayRecord
 from lerobot.configs.train import TrainPipelineConfig
 from lerobot.datasets import compute_sampler_state
 from lerobot.optim.factory import make_optimizer_and_scheduler
+from lerobot.optim.schedulers import LRSchedulerConfig
 from lerobot.policies.common.vla_utils import resize_with_pad
 from lerobot.scripts.lerobot_train import update_policy
 from lerobot.transforms.transforms import ImageTransforms
@@ -116,6 +117,12 @@ def accelerator_for(device: torch.device) -> Accelerator:
     )
 
 
+def peaking_at(schedule: LRSchedulerConfig | None, lr: float) -> LRSchedulerConfig | None:
+    """A policy's schedule preset at peak rate ``lr``: lerobot's cosine preset names its peak;
+    diffusers' schedules (Diffusion Policy's) scale the optimizer's rate, which is ``lr`` already."""
+    return replace(schedule, peak_lr=lr) if hasattr(schedule, "peak_lr") else schedule
+
+
 def set_schedule_step(scheduler, global_step: int) -> None:
     """Put a LambdaLR schedule (lerobot's presets) at ``global_step`` and set the learning rates;
     a policy whose preset has no schedule (ACT's) trains at its constant rate."""
@@ -152,7 +159,7 @@ class LocalTrainer:
             policy=cfg,
             # the policy's presets at this trainer's own peak rate (a personal fine-tune's is lower)
             optimizer=replace(cfg.get_optimizer_preset(), lr=self.run.lr),
-            scheduler=schedule and replace(schedule, peak_lr=self.run.lr),
+            scheduler=peaking_at(schedule, self.run.lr),
             steps=self.run.total_steps,
         )
         self.optimizer, self.scheduler = make_optimizer_and_scheduler(train_cfg, self.bundle.policy)
@@ -429,7 +436,9 @@ def evaluate(
             check_skips(split.entry.name, "held-out", skipped, len(losses), max_skip)
             continue
         index = len(losses)
-        raw_action, is_pad = batch["action"].clone(), batch["action_is_pad"].clone()
+        # the chunk is predicted from the latest observation; the window may begin earlier (Diffusion's)
+        now = policy.config.action_delta_indices.index(0)
+        raw_action, is_pad = batch["action"][:, now:].clone(), batch["action_is_pad"][:, now:].clone()
         batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task, bundle.device))
         with torch.random.fork_rng(devices=rng_devices(bundle)), autocast:
             torch.manual_seed(seed + index)  # same noise and time every round: losses are comparable
