@@ -309,3 +309,25 @@ def test_each_model_is_rolled_out_where_its_figure_is_read():
         "client 1": ["Nesterov", "centralised", "local 0", "local 1", "personal 1"],
         "server": ["start", "Nesterov", "centralised", "local 0", "local 1", "personal 0", "personal 1"],
     }
+
+
+def test_the_policy_trains_every_model_and_folders_from_before_the_key_are_smolvlas(tmp_path, capsys):
+    """``--policy`` is every model's type, the federations' and the baselines'; a folder or JSON a
+    study wrote before the key existed trained SmolVLA, so it continues a SmolVLA study and a
+    Diffusion study refuses its seeds in one sentence, before anything trains."""
+    from zk0.bench.study import SETTINGS, build_parser, main, study_run, study_stash
+
+    diffusion = build_parser().parse_args(["--policy", "diffusion", "--output-dir", str(tmp_path)])
+    assert study_run(diffusion, SETTINGS["sim"]).policy == "diffusion"
+    smolvla = build_parser().parse_args(["--output-dir", str(tmp_path)])
+    study_stash(smolvla, "mild", 42)
+    recorded = json.loads((tmp_path / "mild" / "seed-42" / "settings.json").read_text())
+    assert "policy" not in recorded, "as folders were written before --policy"
+    earlier = tmp_path / "earlier.json"
+    settings = {k: v for k, v in vars(smolvla).items() if k != "policy"} | {"federation_lr": smolvla.lr}  # as main sets it
+    earlier.write_text(json.dumps({"settings": settings, "results": {}}))
+    assert main(["--output-dir", str(tmp_path / "other"), "--policy", "diffusion", "--seeds-from", str(earlier)]) == 2
+    assert capsys.readouterr().err == (
+        f"[zk0] --seeds-from {str(earlier)!r} was trained with policy = 'smolvla', not 'diffusion'; its seeds cannot "
+        "be tabled with these.\n"
+    )

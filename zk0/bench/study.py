@@ -78,7 +78,7 @@ from zk0.bench.study_tables import (
     summary,
 )
 from zk0.common.errors import OneSentenceParser, Zk0Error, positive
-from zk0.config import OFFLINE_MODELS, RunConfig
+from zk0.config import OFFLINE_MODELS, POLICIES, RunConfig
 from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.federation.client import build_client
 from zk0.learning.policy import PolicyBundle, snapshot
@@ -105,6 +105,7 @@ def study_run(args: argparse.Namespace, registry: str, seed: int = RunConfig.see
         eval_batches=EVAL_ALL,
         registry=registry,
         model=args.model,
+        policy=args.policy,
         min_train_clients=args.clients,
         personal_steps=args.personal_steps,
     )
@@ -140,6 +141,7 @@ def federated_models(
             "eval-frequency": args.rounds,
             "lr": args.federation_lr,
             "model": args.model,
+            "policy": args.policy,
             "seed": seed,
         }
         name = f"federation {label}"
@@ -161,7 +163,15 @@ def federated_models(
 
 # What the models of a study depend on: a folder holding models trained otherwise is refused.
 TRAINING_KEYS = ("rounds", "local_steps", "batch_size", "model", "lr", "federation_lr", "proximal_mu", "federations",
-                 "server_lr", "server_momentum", "clients", "demos", "personal_steps", "wire_dtype")  # fmt: skip
+                 "server_lr", "server_momentum", "clients", "demos", "personal_steps", "wire_dtype", "policy")  # fmt: skip
+# A key that studies recorded before it existed, and its value then (they trained SmolVLA).
+BEFORE_KEYS = {"policy": "smolvla"}
+
+
+def training_settings(args: argparse.Namespace) -> dict:
+    """What ``args`` trains with, as a study folder records it: a key at its value from before the
+    key existed is left out, so folders and figures recorded then are still this command's."""
+    return {k: vars(args)[k] for k in TRAINING_KEYS if k not in BEFORE_KEYS or vars(args)[k] != BEFORE_KEYS[k]}
 
 
 def rollout_plan(models: list[str], clients: int) -> dict[str, list[str]]:
@@ -180,7 +190,7 @@ def rollout_plan(models: list[str], clients: int) -> dict[str, list[str]]:
 
 def study_stash(args: argparse.Namespace, setting: str, seed: int) -> Stash:
     """Where one setting's models of training seed ``seed`` are kept (refused if trained otherwise)."""
-    return Stash(Path(args.output_dir) / setting / f"seed-{seed}", {k: vars(args)[k] for k in TRAINING_KEYS})
+    return Stash(Path(args.output_dir) / setting / f"seed-{seed}", training_settings(args))
 
 
 def run_seed(args: argparse.Namespace, setting: str, seed: int) -> dict | None:
@@ -265,6 +275,7 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument("--rounds", type=positive(int), default=8)
     parser.add_argument("--local-steps", type=positive(int), default=20)
     parser.add_argument("--batch-size", type=positive(int), default=8)
+    parser.add_argument("--policy", default="smolvla", choices=POLICIES, help="the lerobot policy type every model is")
     parser.add_argument("--model", default="tiny", choices=OFFLINE_MODELS, help="the offline model (sim: tiny-128)")
     parser.add_argument("--lr", type=positive(float), default=8e-3, help="every model's (the best tried for each)")
     parser.add_argument(
@@ -322,10 +333,10 @@ def earlier_seeds(args: argparse.Namespace) -> dict[str, dict[int, dict]]:
             f"--seeds-from {args.seeds_from!r} is not a study's JSON (python -m zk0.bench study --json)."
         ) from None
     for key in (*TRAINING_KEYS, "sim_episodes"):
-        mine = json.loads(json.dumps(vars(args)[key]))
-        if settings.get(key) != mine:
+        mine, theirs = json.loads(json.dumps(vars(args)[key])), settings.get(key, BEFORE_KEYS.get(key))
+        if theirs != mine:
             raise Zk0Error(
-                f"--seeds-from {args.seeds_from!r} was trained with {key} = {settings.get(key)!r}, not {mine!r}; "
+                f"--seeds-from {args.seeds_from!r} was trained with {key} = {theirs!r}, not {mine!r}; "
                 "its seeds cannot be tabled with these."
             )
     return {setting: {int(seed): run for seed, run in result["seeds"].items()} for setting, result in results.items()}

@@ -88,8 +88,8 @@ def print_setting(setting: str, result: dict, args: argparse.Namespace) -> None:
     columns = list(next(iter(matrix.values())))
     print(
         f"\nsetting {setting}, training seed {result['seed']}: {len(result['clients'])} clients ({', '.join(result['clients'].values())}), "
-        f"server set {result['server']}; {args.rounds} rounds x {args.local_steps} steps, batch {args.batch_size}, "
-        f"lr {args.lr} (federation {args.federation_lr})"
+        f"server set {result['server']}; {args.policy} {args.model}, {args.rounds} rounds x {args.local_steps} steps, "
+        f"batch {args.batch_size}, lr {args.lr} (federation {args.federation_lr})"
     )
     for metric in ("action-mse", "policy-loss"):
         print(f"{metric:<12}" + "".join(f"{c:>11}" for c in columns))
