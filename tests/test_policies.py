@@ -139,6 +139,26 @@ def test_diffusion_refuses_cameras_of_two_sizes_in_lerobots_words(registry):
     assert "we expect all image shapes to match" in said and "\n" not in said
 
 
+def test_a_dataset_without_a_statistic_the_policy_normalises_by_is_refused_in_one_sentence(registry):
+    """lerobot's normaliser would stop at the first batch (or pass a feature with no statistics
+    through unscaled): a dataset lacking what the policy reads is refused before anything trains.
+    Diffusion Policy scales actions by their min and max; ACT by mean and std, so it builds."""
+    entry = registry.clients[0]
+    meta = open_metadata(entry)
+    del meta.stats["action"]["min"]
+    with pytest.raises(PolicyError) as refused:
+        diffusion_bundle(registry, meta)
+    assert str(refused.value) == (
+        f"Dataset {entry.name!r} has no min statistics for 'action', which Diffusion Policy normalises by MIN_MAX; "
+        "expected them in its meta/stats.json, as lerobot records them."
+    )
+    assert build_policy(from_run_config({"policy": "act"}), meta, entry, registry.model_cameras()).policy
+    camera = next(iter(entry.cameras))
+    del meta.stats[f"observation.images.{camera}"]
+    with pytest.raises(PolicyError, match=r"has no mean or std statistics for 'observation.images.camera1', which ACT"):
+        build_policy(from_run_config({"policy": "act"}), meta, entry, registry.model_cameras())
+
+
 def test_the_policies_benchmark_builds_each_type_offline_or_says_why_not(tmp_path, capsys):
     """A row per lerobot policy type: ACT builds as zk0 federates it; TD-MPC is refused by lerobot
     itself in its own words (it takes one camera, the quick run's owners have two)."""

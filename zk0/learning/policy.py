@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 from flwr.app import ArrayRecord
-from lerobot.configs import FeatureType, PreTrainedConfig
+from lerobot.configs import FeatureType, NormalizationMode, PreTrainedConfig
 from lerobot.datasets.dataset_metadata import LeRobotDatasetMetadata
 from lerobot.policies import PreTrainedPolicy, make_policy, make_pre_post_processors
 from lerobot.processor import PolicyProcessorPipeline, RenameObservationsProcessorStep, rename_stats
@@ -173,6 +173,7 @@ def build_policy(
     if run.peft == "lora":
         policy = adapters.wrap(policy, run)  # from here on, the adapters are what trains and travels
     stats = rename_stats(meta.stats, entry.rename_map())
+    check_statistics(policy.config, stats, entry)
     preprocessor, postprocessor = make_pre_post_processors(
         policy.config,
         pretrained_path=str(cfg.pretrained_path) if cfg.pretrained_path else None,
@@ -184,6 +185,33 @@ def build_policy(
             step.rename_map = entry.rename_map()
     trainable = [name for name, p in policy.named_parameters() if p.requires_grad]
     return PolicyBundle(policy, preprocessor, postprocessor, trainable, device, stats)
+
+
+# The statistics each of lerobot's normalisation modes reads (lerobot.processor.normalize_processor).
+STATS_READ = {
+    NormalizationMode.MEAN_STD: ("mean", "std"),
+    NormalizationMode.MIN_MAX: ("min", "max"),
+    NormalizationMode.QUANTILES: ("q01", "q99"),
+    NormalizationMode.QUANTILE10: ("q10", "q90"),
+}
+
+
+def check_statistics(cfg: PreTrainedConfig, stats: dict, entry: DatasetEntry) -> None:
+    """Every statistic the policy's processors normalise by, present for every feature it reads.
+
+    lerobot's normaliser passes a feature with no statistics through unscaled, and stops at the
+    first batch of one that lacks the statistic its mode needs; either way a client would train
+    on what it cannot read. (SmolVLA's cameras, empty slots included, are not normalised.)"""
+    for key, feature in config_features(cfg).items():
+        mode = cfg.normalization_mapping.get(feature.type.value, NormalizationMode.IDENTITY)
+        if mode not in STATS_READ:
+            continue
+        missing = [name for name in STATS_READ[mode] if name not in stats.get(key, {})]
+        if missing:
+            raise PolicyError(
+                f"Dataset {entry.name!r} has no {' or '.join(missing)} statistics for {key!r}, which {name_of(cfg)} "
+                f"normalises by {NormalizationMode(mode).value}; expected them in its meta/stats.json, as lerobot records them."
+            )
 
 
 def _pretrained_overrides(cfg: PreTrainedConfig, stats: dict, device: torch.device) -> dict:
