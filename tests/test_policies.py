@@ -125,6 +125,25 @@ def test_diffusion_is_built_from_random_weights_with_group_norm_and_a_horizon_th
     assert (full.down_dims, full.noise_scheduler_type) == ((512, 1024, 2048), "DDPM"), "lerobot's default"
 
 
+def test_diffusions_action_window_starts_an_observation_back_and_is_judged_from_the_latest(registry):
+    """lerobot hands Diffusion Policy the actions from its oldest observation on; its chunk starts
+    at the latest, so the held-out MSE compares it with the window from there: that entry is the
+    action a policy whose window starts now (ACT's) gets first."""
+    from zk0.data.loaders import open_split
+    from zk0.learning.training import chunk_start
+
+    entry = registry.clients[0]
+    meta = open_metadata(entry)
+    windows = {}
+    for policy in ("act", "diffusion"):
+        run = from_run_config({"policy": policy})
+        cfg = build_policy(run, meta, entry, registry.model_cameras()).policy.config
+        sample = open_split(entry, meta, cfg, run).evaluation[5]
+        windows[policy] = sample["action"][chunk_start(cfg) :]
+    assert torch.equal(windows["diffusion"][:10], windows["act"][:10])
+    assert not torch.equal(windows["diffusion"][:10], windows["act"][1:11]), "the actions move"
+
+
 def test_diffusion_refuses_cameras_of_two_sizes_in_lerobots_words(registry):
     """lerobot's Diffusion Policy stacks its cameras, so they must be one size: a dataset whose
     cameras differ is refused in one sentence naming it, before anything trains."""

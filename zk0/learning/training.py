@@ -20,6 +20,7 @@ import psutil
 import torch
 from accelerate import Accelerator
 from flwr.app import ArrayRecord
+from lerobot.configs import PreTrainedConfig
 from lerobot.configs.train import TrainPipelineConfig
 from lerobot.datasets import compute_sampler_state
 from lerobot.optim.factory import make_optimizer_and_scheduler
@@ -405,6 +406,12 @@ def peak_memory(device: torch.device) -> dict[str, float]:
     return {"peak-gpu-gib": gpu, "host-rss-gib": psutil.Process().memory_info().rss / 2**30}
 
 
+def chunk_start(cfg: PreTrainedConfig) -> int:
+    """Where a predicted chunk starts in the window of actions lerobot's dataset gives the policy:
+    at the latest observation, which Diffusion Policy's window begins ``n_obs_steps - 1`` before."""
+    return cfg.action_delta_indices.index(0)
+
+
 @torch.no_grad()
 def evaluate(
     bundle: PolicyBundle, split: DatasetSplit, loader: DataLoader, max_batches: int, seed: int, max_skip: float
@@ -436,8 +443,7 @@ def evaluate(
             check_skips(split.entry.name, "held-out", skipped, len(losses), max_skip)
             continue
         index = len(losses)
-        # the chunk is predicted from the latest observation; the window may begin earlier (Diffusion's)
-        now = policy.config.action_delta_indices.index(0)
+        now = chunk_start(policy.config)
         raw_action, is_pad = batch["action"][:, now:].clone(), batch["action_is_pad"][:, now:].clone()
         batch = bundle.preprocessor(prepare_batch(batch, split.meta.camera_keys, split.entry.task, bundle.device))
         with torch.random.fork_rng(devices=rng_devices(bundle)), autocast:
