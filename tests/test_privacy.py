@@ -13,10 +13,10 @@ from flwr.serverapp.strategy import FedAvg
 from tests.test_aggregation import Recorder, reply
 from zk0.config import ConfigError, from_run_config
 from zk0.federation.aggregation import ValidatingStrategy
-from zk0.federation.updates import array_signature
 from zk0.federation.privacy import OwnerLevelDP, calibrated_noise
 from zk0.federation.robust import make_rule
 from zk0.federation.server_optimisers import make_strategy
+from zk0.federation.updates import array_signature
 
 pytestmark = pytest.mark.usefixtures("flower_task")  # the tests play the ServerApp of run 1
 

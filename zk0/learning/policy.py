@@ -30,6 +30,7 @@ from zk0.data.registry import DatasetEntry
 from zk0.learning import adapters
 from zk0.learning.policy_types import COMPILE_MODE, fresh_config, name_of
 
+
 class PolicyError(Zk0Error):
     """A dataset or model that cannot feed the global policy; one sentence naming it."""
 
