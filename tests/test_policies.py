@@ -235,7 +235,7 @@ def loads_in_lerobot(best: Path, policy: str, class_name: str, tmp_path: Path) -
 
 
 @pytest.mark.e2e
-@pytest.mark.allowance(300)
+@pytest.mark.allowance(420)
 def test_an_act_federation_rolls_out_checkpoints_continues_and_loads_in_lerobot(flower_env, tmp_path):
     """Two simulated owners train ACT from their frames for two rounds through `flwr run`, with
     personal models and closed-loop evaluation; the checkpoint is ACT to lerobot's own loader and

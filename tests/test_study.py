@@ -186,7 +186,7 @@ def test_the_sim_setting_rolls_every_model_out_in_each_sets_conditions_and_sums_
     from zk0.bench.study_tables import sim_summary
 
     args = argparse.Namespace(
-        rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128", personal_steps=0
+        rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=2, model="tiny-128", personal_steps=0, policy="smolvla"
     )
     registry_path = "configs/sim-registry.toml"
     registry = load_registry(registry_path)
