@@ -164,6 +164,8 @@ def build_policy(
             f"no empty-camera slots (SmolVLA has); map one of its cameras {sorted(meta.camera_keys)} onto each in its "
             "registry entry (cameras = {...}), or federate only datasets that record every model camera."
         )
+    stats = rename_stats(meta.stats, entry.rename_map())
+    check_statistics(cfg, features, stats, entry)  # before the (full-size: seconds of) build
     torch.manual_seed(run.seed)  # the frozen backbone must be bit-identical on every party
     try:
         policy = make_policy(cfg, ds_meta=meta, rename_map=entry.rename_map())
@@ -173,8 +175,6 @@ def build_policy(
         ) from None
     if run.peft == "lora":
         policy = adapters.wrap(policy, run)  # from here on, the adapters are what trains and travels
-    stats = rename_stats(meta.stats, entry.rename_map())
-    check_statistics(policy.config, stats, entry)
     preprocessor, postprocessor = make_pre_post_processors(
         policy.config,
         pretrained_path=str(cfg.pretrained_path) if cfg.pretrained_path else None,
@@ -197,13 +197,14 @@ STATS_READ = {
 }
 
 
-def check_statistics(cfg: PreTrainedConfig, stats: dict, entry: DatasetEntry) -> None:
-    """Every statistic the policy's processors normalise by, present for every feature it reads.
+def check_statistics(cfg: PreTrainedConfig, features: dict, stats: dict, entry: DatasetEntry) -> None:
+    """Every statistic the policy's processors normalise by, present for every feature it reads
+    (``features``: the model's, as this dataset feeds them).
 
     lerobot's normaliser passes a feature with no statistics through unscaled, and stops at the
     first batch of one that lacks the statistic its mode needs; either way a client would train
     on what it cannot read. (SmolVLA's cameras, empty slots included, are not normalised.)"""
-    for key, feature in config_features(cfg).items():
+    for key, feature in features.items():
         mode = cfg.normalization_mapping.get(feature.type.value, NormalizationMode.IDENTITY)
         if mode not in STATS_READ:
             continue
