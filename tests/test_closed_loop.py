@@ -39,13 +39,13 @@ def bundle():
 @pytest.mark.slow
 @pytest.mark.parametrize("policy", ["smolvla", "diffusion"])
 def test_the_fast_loop_takes_lerobots_actions_in_every_episode(policy):
-    """Four seeded episodes in batches of two: lerobot's ``rollout`` over a vector env of two (as
+    """Four seeded episodes of 100 steps in batches of two: lerobot's ``rollout`` over a vector env of two (as
     ``eval_policy`` runs it, every frame rendered and ``select_action`` every step) and zk0's loop
     take the same actions at every step and end the same way: SmolVLA asked once a chunk,
     Diffusion Policy (two observations remembered) every step."""
     bundle = untrained(policy)
     seed, episodes, batch = 11, 4, 2
-    loop = ClosedLoop(CONDITIONS, episodes, seed, 128, 128, batch=batch)
+    loop = ClosedLoop(CONDITIONS, episodes, seed, 128, 128, episode_length=100, batch=batch)
     env = make_env(loop.config, n_envs=batch)[loop.config.type][0]
     try:
         ours = loop.rollouts(bundle)
@@ -68,10 +68,10 @@ def test_the_fast_loop_takes_lerobots_actions_in_every_episode(policy):
 
 
 def test_a_rollout_reports_its_rate_with_the_interval_and_writes_the_first_video(bundle, tmp_path):
-    """Three short-lived episodes of the untrained policy: the rates carry their episode count and
-    Wilson interval (0/3 is not [0, 0]), the first episode's video is written, and evaluating the
+    """Three episodes of the untrained policy, cut at 60 steps: the rates carry their episode count
+    and Wilson interval (0/3 is not [0, 0]), the first episode's video is written, and evaluating the
     same model again gives the same episodes (the noise is seeded, the caller's RNG untouched)."""
-    loop = ClosedLoop(CONDITIONS, 3, 5, 128, 128, batch=3)
+    loop = ClosedLoop(CONDITIONS, 3, 5, 128, 128, episode_length=60, batch=3)
     try:
         torch.manual_seed(0)
         before = torch.rand(1)
@@ -83,7 +83,7 @@ def test_a_rollout_reports_its_rate_with_the_interval_and_writes_the_first_video
         loop.close()
     assert metrics["episodes"] == 3 and metrics["success-rate"] == 0.0
     assert (metrics["success-low"], metrics["success-high"]) == pytest.approx(wilson(0, 3))
-    assert metrics["success-high"] > 0.5 and metrics["episode-length"] == 300
+    assert metrics["success-high"] > 0.5 and metrics["episode-length"] == 60
     assert set(metrics) >= {"reached-rate", "grasped-rate", "lifted-rate", "sim-eval-s"}
     assert (tmp_path / "videos" / "round_1.mp4").stat().st_size > 1000
     assert summary(again) | {"sim-eval-s": metrics["sim-eval-s"]} == metrics

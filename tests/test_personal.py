@@ -102,7 +102,8 @@ def test_a_simulated_owner_rolls_both_models_out_in_its_own_conditions(tmp_path)
     entry = registry.get("sim-so101-left")
     ensure_dataset(entry.name)
     run = from_run_config({"registry": "configs/sim-registry.toml", "server-eval-dataset": "sim-so101-eval",
-                           "model": "tiny-128", "batch-size": 2, "personal-steps": 2, "sim-eval-episodes": 2})  # fmt: skip
+                           "model": "tiny-128", "batch-size": 2, "personal-steps": 2, "sim-eval-episodes": 2,
+                           "sim-episode-length": 40})  # fmt: skip
     session = client.build_client(run, entry, registry.model_cameras())
     personaliser = build_personaliser(run, session.bundle, session.split, session.eval_batches)
     try:

@@ -192,9 +192,10 @@ def test_the_policies_benchmark_builds_each_type_offline_or_says_why_not(tmp_pat
 
 
 def sim_run_config(policy: str, rounds: int) -> str:
-    """Two simulated owners and one closed-loop episode a round: short, but every path."""
+    """Two simulated owners and one closed-loop episode of 30 steps a round: short, but every path."""
     return (
         f"policy='{policy}' registry='{SIM_REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=1 "
+        "sim-episode-length=30 "
         f"num-server-rounds={rounds} local-steps=2 batch-size=2 eval-batches=1 checkpoint-interval=1"
     )
 
@@ -275,7 +276,7 @@ def test_a_diffusion_federation_rolls_out_from_two_observations_and_loads_in_ler
     history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
     for record in history["rounds"]:  # round 0 (the random start) and round 1
         judged = record["server-evaluate"]
-        assert judged["episodes"] == 1 and 1 <= judged["episode-length"] <= 300 and judged["action-mse"] > 0, judged
+        assert judged["episodes"] == 1 and 1 <= judged["episode-length"] <= 30 and judged["action-mse"] > 0, judged
     loads_in_lerobot(run_dir / "models" / "best", "diffusion", "DiffusionPolicy", tmp_path)
     from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
 

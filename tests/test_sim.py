@@ -277,7 +277,8 @@ def test_a_machine_that_cannot_render_says_so_in_one_sentence():
 @pytest.mark.e2e
 def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_model(flower_env, tmp_path):
     """Two sim clients x 1 round through `flwr run`: success rates in the round JSON and history, a
-    video, a success chart, models/best; then lerobot's `lerobot-eval` runs models/best on the env."""
+    video, a success chart, models/best, episodes cut at `sim-episode-length`; then lerobot's
+    `lerobot-eval` runs models/best on the env."""
     from zk0.deployment.simulation import cpu_federation, flwr_run
 
     for entry in load_registry(REGISTRY).entries:  # the server checks every client dataset before round 1
@@ -285,7 +286,8 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     out = tmp_path / "outputs"
     log = flwr_run(
         flower_env,
-        f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 model='tiny-128' "
+        f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 sim-episode-length=40 "
+        "model='tiny-128' "
         f"num-server-rounds=1 local-steps=2 batch-size=2 eval-batches=1 output-dir='{out}'",
         cpu_federation(num_supernodes=2, actors=1),
     )
@@ -296,7 +298,7 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     for record in history["rounds"]:
         evaluation = record["server-evaluate"]
         assert {"success-rate", "reached-rate", "grasped-rate", "lifted-rate", "episode-length"} <= set(evaluation)
-        assert 0.0 <= evaluation["success-rate"] <= 1.0 and 1 <= evaluation["episode-length"] <= 300
+        assert 0.0 <= evaluation["success-rate"] <= 1.0 and 1 <= evaluation["episode-length"] <= 40
         assert evaluation["episodes"] == 2 and evaluation["success-low"] <= evaluation["success-rate"]
         assert evaluation["success-rate"] <= evaluation["success-high"] <= 1.0
         assert (server / "videos" / f"round_{record['round']}.mp4").stat().st_size > 0

@@ -72,7 +72,9 @@ class ServerEvaluation:
             from zk0.learning.closed_loop import ClosedLoop  # MuJoCo and a renderer: only when asked for
 
             height, width, _ = split.meta.features["observation.images.front"]["shape"]
-            self.closed_loop = ClosedLoop(split.entry.name, run.sim_eval_episodes, run.seed, height, width)
+            self.closed_loop = ClosedLoop(
+                split.entry.name, run.sim_eval_episodes, run.seed, height, width, run.sim_episode_length
+            )
 
     def __call__(self, server_round: int, arrays: ArrayRecord) -> MetricRecord | None:
         if server_round and not self.run.evaluates_in(server_round):

@@ -91,7 +91,9 @@ def build_personaliser(
     closed_loop = None
     if run.sim_eval_episodes and split.entry.name in SIM_SPECS:
         height, width, _ = split.meta.features["observation.images.front"]["shape"]
-        closed_loop = ClosedLoop(split.entry.name, run.sim_eval_episodes, run.seed, height, width)
+        closed_loop = ClosedLoop(
+            split.entry.name, run.sim_eval_episodes, run.seed, height, width, run.sim_episode_length
+        )
     return Personaliser(run, eval_batches, trainer, closed_loop)
 
 

@@ -60,8 +60,13 @@ class ClosedLoop:
     """The seeded episodes of one set of conditions; the envs are built once for the run, and
     ``close()`` releases their renderers."""
 
-    def __init__(self, conditions: str, episodes: int, seed: int, height: int, width: int, batch: int = BATCH):
-        self.config = PickCubeEnvConfig(conditions=conditions, observation_height=height, observation_width=width)
+    def __init__(
+        self, conditions: str, episodes: int, seed: int, height: int, width: int, episode_length: int = 300,
+        batch: int = BATCH,
+    ):  # fmt: skip
+        self.config = PickCubeEnvConfig(
+            conditions=conditions, observation_height=height, observation_width=width, episode_length=episode_length
+        )
         self.env_preprocessor, self.env_postprocessor = self.config.get_env_processors()
         task = SIM_SPECS[conditions].task
         self.envs = [PickCubeEnv(task, height, width) for _ in range(min(batch, episodes))]
