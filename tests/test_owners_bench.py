@@ -50,10 +50,13 @@ def test_the_owners_benchmark_trains_each_size_and_judges_it_where_no_owner_was(
 
     argv = ["--sizes", "1", "2", "--per-round", "1", "--personal-owners", "1", "--demos", "4", "--rounds", "1"]
     argv += ["--local-steps", "1", "--personal-steps", "1", "--seeds", "7", "--unseen", "1", "--sim-episodes", "2"]
+    argv += ["--episode-length", "40"]
     argv += ["--model", "tiny", "--batch-size", "2", "--output-dir", str(tmp_path), "--json", str(tmp_path / "o.json")]
     assert main(argv) == 0
     first = capsys.readouterr().out
     figures = json.loads((tmp_path / "o.json").read_text())
+    kept = [json.loads(p.read_text()) for p in tmp_path.rglob("rollouts-2x40/*/*.json")]
+    assert kept and all(r["episode-length"] <= 40 for r in kept), "episodes end at --episode-length"
     assert figures["unseen"] == ["sim-so101-owner-2-cube"]
     for size in ("1", "2"):
         rolled = figures["rollouts"][size]["7"]

@@ -53,11 +53,14 @@ def test_the_robustness_benchmark_trains_rolls_out_and_continues_from_its_folder
 
     argv = ["--seeds", "7", "--clients", "1", "--demos", "4", "--rounds", "1", "--local-steps", "1"]
     argv += ["--personal-steps", "1", "--batch-size", "2", "--model", "tiny", "--sim-episodes", "2"]
+    argv += ["--episode-length", "40"]
     argv += ["--conditions", "dim-0", "--owner-conditions", "dim-0", "--output-dir", str(tmp_path)]
     argv += ["--json", str(tmp_path / "robustness.json")]
     assert main(argv) == 0
     first = capsys.readouterr().out
     figures = json.loads((tmp_path / "robustness.json").read_text())
+    kept = [json.loads(p.read_text()) for p in tmp_path.rglob("rollouts-2x40/*/*.json")]
+    assert kept and all(r["episode-length"] <= 40 for r in kept), "episodes end at --episode-length"
     rolled = figures["seeds"]["7"]
     assert list(rolled) == ["off", "on"]
     for label in ("off", "on"):

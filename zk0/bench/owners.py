@@ -16,7 +16,7 @@ or seeds run as separate commands are tabled by one more with all of them.
 
     python -m zk0.bench owners [--sizes 4 16 64] [--per-round 4] [--demos 10] [--rounds 20]
         [--local-steps 75] [--model tiny-128] [--lr 1e-3] [--personal-steps 300] [--seeds 42 43]
-        [--unseen 4] [--personal-owners 4] [--sim-episodes 100] [--output-dir outputs/bench-owners] [--json FILE]
+        [--unseen 4] [--personal-owners 4] [--sim-episodes 100] [--episode-length 300] [--output-dir outputs/bench-owners] [--json FILE]
 """
 
 from __future__ import annotations
@@ -103,7 +103,9 @@ def run_size(args: argparse.Namespace, size: int, seed: int, unseen: list[str]) 
     plan = {SERVER: ["global"], **{name: ["global"] for name in unseen}}
     plan |= {f"client {s.index}": [f"personal {s.index}"] for s in sessions}
     where = {name: (SERVER, name) for name in unseen}
-    return closed_loop_all(plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash, where)
+    return closed_loop_all(
+        plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash, where, args.episode_length
+    )
 
 
 def pooled(rolled: dict[int, dict[int, dict]], size: int, where: list[tuple[str, str]]) -> list[int]:

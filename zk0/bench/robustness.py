@@ -22,7 +22,7 @@ the same episodes. Every trained model and finished rollout is kept in ``--outpu
 commands can be tabled together by one more with all of them.
 
     python -m zk0.bench robustness [--seeds 42 43] [--demos 30] [--rounds 20] [--local-steps 75]
-        [--model tiny-128] [--lr 1e-3] [--personal-steps 300] [--sim-episodes 100]
+        [--model tiny-128] [--lr 1e-3] [--personal-steps 300] [--sim-episodes 100] [--episode-length 300]
         [--conditions dim-0 bright-0 tint-0 camera-0 table-0] [--owner-conditions dim-0 bright-0]
         [--output-dir outputs/bench-robustness] [--json FILE]
 """
@@ -147,7 +147,9 @@ def run_seed(args: argparse.Namespace, seed: int) -> dict[str, dict]:
         columns = evaluation_sets(sessions, registry, run)
         models = train_models(args, sessions, run, stash, columns, say)
         plan, where = rollout_columns(args, sessions, run.server_eval_dataset)
-        rolled[label] = closed_loop_all(plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash, where)
+        rolled[label] = closed_loop_all(
+            plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash, where, args.episode_length
+        )
     return rolled
 
 
