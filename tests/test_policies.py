@@ -269,10 +269,12 @@ def test_a_diffusion_federation_rolls_out_from_two_observations_and_loads_in_ler
     """Two simulated owners train Diffusion Policy through `flwr run`: the server rolls the global
     model out (every step observed: it remembers two) and judges it on held-out frames, report.html
     gives the rollout command, the model card installs Diffusion's extra, the checkpoint is
-    Diffusion Policy to lerobot's loader and `lerobot-eval`, and `zk0 export` hands an owner one
-    lerobot loads. (ACT's test resumes.)"""
-    run_config = f"{sim_run_config('diffusion', rounds=1)} hf-repo-id='zk0-tests/diffusion'"
+    Diffusion Policy to lerobot's loader and `lerobot-eval`, each owner fine-tunes a personal
+    model and rolls both out in its own set-up, and `zk0 export` hands an owner the global and the
+    personal model, each one lerobot loads. (ACT's test resumes.)"""
+    run_config = f"{sim_run_config('diffusion', rounds=1)} personal-steps=1 hf-repo-id='zk0-tests/diffusion'"
     run_dir, log = federate(flower_env, run_config, tmp_path / "outputs", "Diffusion Policy")
+    assert "Personal models after round 1" in log and "success in the owner's own conditions" in log, log[-3000:]
     history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
     for record in history["rounds"]:  # round 0 (the random start) and round 1
         judged = record["server-evaluate"]
@@ -284,6 +286,8 @@ def test_a_diffusion_federation_rolls_out_from_two_observations_and_loads_in_ler
 
     assert main(["export", str(run_dir), "--client", "1", "--out", str(tmp_path / "owner-1")]) == 0
     assert DiffusionPolicy.from_pretrained(tmp_path / "owner-1").config.n_obs_steps == 2
+    assert main(["export", str(run_dir), "--client", "0", "--personal", "--out", str(tmp_path / "personal-0")]) == 0
+    assert DiffusionPolicy.from_pretrained(tmp_path / "personal-0").config.n_obs_steps == 2
     assert f"--policy.path={run_dir / 'models' / 'best'}" in (run_dir / "report.html").read_text()
     (card,) = (run_dir / "hub").glob("best_round_*/README.md")
     assert 'pip install "lerobot[feetech,diffusion]==0.6.1"' in card.read_text()
