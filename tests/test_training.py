@@ -9,7 +9,7 @@ import time
 
 import pytest
 import torch
-from lerobot.optim import CosineDecayWithWarmupSchedulerConfig
+from lerobot.optim import CosineDecayWithWarmupSchedulerConfig, DiffuserSchedulerConfig
 
 from zk0.config import RunConfig
 from zk0.data.loaders import eval_loader, open_metadata, open_split, train_loader
@@ -70,9 +70,15 @@ def test_fedprox_adds_its_gradient_to_the_policy_loss_gradient(client_parts):
     param.grad = None
 
 
-def test_schedule_follows_the_global_step_not_the_round():
+@pytest.mark.parametrize("preset", ["smolvla", "diffusion"])
+def test_schedule_follows_the_global_step_not_the_round(preset):
+    """A client sampled again, or a resumed run, puts the schedule at the run's global step: SmolVLA's
+    warm-up and cosine decay, and Diffusion Policy's (diffusers' cosine, its rate the optimizer's)."""
+
     def scheduler():
         opt = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=1e-4)
+        if preset == "diffusion":
+            return DiffuserSchedulerConfig(name="cosine", num_warmup_steps=10).build(opt, 100)
         cfg = CosineDecayWithWarmupSchedulerConfig(
             peak_lr=1e-4, decay_lr=1e-6, num_warmup_steps=10, num_decay_steps=100
         )
