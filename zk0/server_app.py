@@ -35,12 +35,12 @@ from zk0.data.registry import Registry, load_registry
 from zk0.deployment.grid import PromptGrid
 from zk0.federation import stopping
 from zk0.federation.aggregation import ValidatingStrategy
-from zk0.federation.updates import array_signature
-from zk0.federation.waiting import OwnersGone, OwnersWatch
 from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
 from zk0.federation.robust import make_rule
 from zk0.federation.round_artifacts import RoundArtifacts
 from zk0.federation.server_optimisers import make_strategy, restore_state
+from zk0.federation.updates import array_signature
+from zk0.federation.waiting import OwnersGone, OwnersWatch
 from zk0.federation.wire import SHAPE
 from zk0.internals import is_simulation, shorten_object_pull_backoff
 from zk0.learning.policy import (
