@@ -97,7 +97,10 @@ def add_sim_cube_recipe(parser, demos: int) -> None:
     parser.add_argument("--personal-steps", type=positive(int), default=300)
     parser.add_argument("--sim-episodes", type=positive(int), default=100)
     parser.add_argument(
-        "--episode-length", type=positive(int), default=300, help="steps before an episode ends unsolved (10 s)"
+        "--episode-length",
+        type=positive(int),
+        default=RunConfig.sim_episode_length,
+        help="steps before an episode ends unsolved (the run config's sim-episode-length)",
     )
     parser.add_argument("--wire-dtype", default="bfloat16", choices=["bfloat16", "float32"])
 
@@ -210,7 +213,7 @@ def closed_loop_all(
     say: Callable[[str], None],
     stash: Stash | None = None,
     conditions: dict[str, tuple[str, str]] | None = None,
-    episode_length: int = 300,
+    episode_length: int = RunConfig.sim_episode_length,
 ) -> dict:
     """Models' success in closed loop in evaluation sets' conditions (the server's span, and each
     client's own set-up), with that set's processors: ``plan`` names, for each column, the models to
@@ -220,12 +223,12 @@ def closed_loop_all(
     in seed order: every model meets the same ``episodes`` episodes, seeded from ``seed``, so two
     can be compared pairwise). Each rollout's figures are kept in
     ``stash`` as it finishes, or taken from it; a set whose rollouts are all kept builds no envs.
-    Episodes end unsolved after ``episode_length`` steps (a length other than the task's 300 is
-    kept apart in the stash)."""
+    Episodes end unsolved after ``episode_length`` steps (a length other than the default is kept
+    apart in the stash)."""
     from zk0.learning.closed_loop import ClosedLoop, summary  # MuJoCo: only for the simulated setting
 
     def name(column: str, label: str) -> str:
-        length = "" if episode_length == 300 else f"x{episode_length}"
+        length = "" if episode_length == RunConfig.sim_episode_length else f"x{episode_length}"
         return f"rollouts-{episodes}{length}/{column}/{label}"
 
     matrix: dict[str, dict[str, dict]] = {label: {} for label in models}

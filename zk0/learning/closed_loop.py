@@ -61,8 +61,8 @@ class ClosedLoop:
     ``close()`` releases their renderers."""
 
     def __init__(
-        self, conditions: str, episodes: int, seed: int, height: int, width: int, episode_length: int = 300,
-        batch: int = BATCH,
+        self, conditions: str, episodes: int, seed: int, height: int, width: int,
+        episode_length: int = PickCubeEnvConfig.episode_length, batch: int = BATCH,
     ):  # fmt: skip
         self.config = PickCubeEnvConfig(
             conditions=conditions, observation_height=height, observation_width=width, episode_length=episode_length
