@@ -48,12 +48,22 @@ def client_log(fed: LoopbackFederation, robot: str, run_dir: Path, index: int) -
     return (fed.root / robot / "outputs" / run_dir.name / "clients" / f"client_{index}" / "client.log").read_text()
 
 
+def project_files() -> list[str]:
+    """The project's files as a user would submit them: tracked or new, never what git ignores
+    (the test cache under ``.cache/``, which other tests write while this one copies)."""
+    listing = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard"],
+        cwd=PROJECT_ROOT, capture_output=True, text=True, check=True,
+    )
+    return [name for name in listing.stdout.splitlines() if (PROJECT_ROOT / name).is_file()]
+
+
 def submitted_copy(root: Path) -> Path:
     """The project as a user might submit it after editing the code: one log line changed."""
     app = root / "app-copy"
-    shutil.copytree(
-        PROJECT_ROOT, app, ignore=shutil.ignore_patterns(".git", ".venv", ".flwr", "outputs", "__pycache__", ".whl")
-    )
+    for name in project_files():
+        (app / name).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(PROJECT_ROOT / name, app / name)
     client = app / "zk0" / "federation" / "client.py"
     source = client.read_text()
     assert '"Opened {}' in source
