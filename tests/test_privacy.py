@@ -42,12 +42,14 @@ class Observer(Recorder):
         self.recorded.append(("late", rnd, clients, nodes))
 
 
-def strategy(run_config: str, owners: int = 4, server_optimiser: str = "fedavg") -> ValidatingStrategy:
-    """zk0's strategy with the run's privacy and rule, its global model at zero."""
+def strategy(
+    run_config: str, owners: int = 4, server_optimiser: str = "fedavg", kind: type = ValidatingStrategy
+) -> ValidatingStrategy:
+    """zk0's strategy (or its subclass ``kind``) with the run's privacy and rule, its global model at zero."""
     run = from_run_config(parse(run_config))
     inner = make_strategy(server_optimiser, 0.0, 0.5, min_train_nodes=1)
     start = model(np.zeros(SIZE, dtype=np.float32))
-    strat = ValidatingStrategy(
+    strat = kind(
         inner,
         expected=array_signature(start),
         evaluates_in=lambda rnd: False,
@@ -161,7 +163,18 @@ def test_a_resumed_accountant_continues_and_a_spent_budget_is_one_sentence():
     [
         ({"dp": "yes"}, "Run-config key 'dp' got 'yes'; expected one of ['off', 'owner', 'record']."),
         ({"aggregation": "mode"}, "Run-config key 'aggregation' got 'mode'; expected one of"),
-        ({"dp": "owner", "aggregation": "krum"}, "'aggregation' = 'krum' cannot go with dp='owner'"),
+        ({"dp": "owner", "aggregation": "krum"}, "'aggregation' = 'krum' (pre-aggregation='none') cannot go with dp="),
+        (
+            {"dp": "owner", "pre-aggregation": "nnm", "min-train-clients": 3},
+            "(pre-aggregation='nnm') cannot go with dp=",
+        ),
+        ({"pre-aggregation": "bucketing"}, "Run-config key 'pre-aggregation' got 'bucketing'; expected one of"),
+        ({"pre-aggregation": "nnm", "aggregation": "krum", "min-train-clients": 4}, "cannot go before Flower's"),
+        (
+            {"aggregation": "mda", "hostile-owners": 2, "min-train-clients": 4},
+            "Run-config key 'min-train-clients' = 4 is too few for mda to outvote hostile-owners=2; expected "
+            "min-train-clients of at least 5",
+        ),
         ({"dp": "owner", "averaging": "fednova"}, "'averaging' = 'fednova' cannot go with dp='owner'"),
         ({"trim-fraction": 0.5}, "Run-config key 'trim-fraction' got 0.5; expected a value >= 0 and < 0.5"),
         ({"dp-delta": 1.0}, "Run-config key 'dp-delta' got 1.0; expected a value > 0 and < 1"),
@@ -205,6 +218,78 @@ def test_a_hostile_owner_that_passes_the_clip_moves_the_mean_and_not_the_robust_
         assert error < 0.2 * mean_error, rule
     krum_error, _ = hostile_round("aggregation=krum")
     assert krum_error < 0.5 * mean_error
+
+
+@pytest.mark.parametrize(
+    ("rule", "bound"),
+    [
+        ("aggregation=geometric-median", 0.2),
+        ("aggregation=centered-clipping", 0.2),
+        ("aggregation=mda", 0.2),
+        ("aggregation=meamed", 0.2),
+        ("aggregation=caf", 0.2),
+        ("aggregation=smea", 0.2),
+        ("pre-aggregation=nnm", 0.2),  # then the mean
+        ("pre-aggregation=nnm aggregation=geometric-median", 0.2),
+        ("pre-aggregation=arc", 0.7),  # clips the hostile update to the largest honest one's norm, no more
+    ],
+)
+def test_byzfls_rules_keep_a_hostile_owner_that_passes_the_clip_near_the_honest_mean(rule, bound):
+    """The same round under ByzFL's rules and pre-aggregators (``f`` = 1 of 16): each lands within
+    a fifth of the mean's error of the honest mean; ARC alone, which only clips, within 0.7 of it
+    (the hostile update keeps its direction at an honest owner's norm: a third of the pull)."""
+    mean_error, _ = hostile_round("aggregation=mean")
+    error, _ = hostile_round(f"{rule} min-train-clients=3")
+    assert error < bound * mean_error, (rule, error / mean_error)
+
+
+def test_a_byzfl_rule_short_of_updates_keeps_the_global_model_and_draws_the_same_each_round():
+    """Two updates cannot outvote one hostile owner: Meamed's round keeps the global model. SMEA
+    draws its directions from a generator seeded by the round, so a resumed run combines the
+    same updates into the same model, and the server's own random state is left as it was."""
+    strat = strategy("aggregation=meamed min-train-clients=3")
+    two = [reply(n, model(u), examples=10) for n, u in enumerate(updates(2, 1.0, seed=1), 1)]
+    assert strat.aggregate_train(1, two) == (None, None)
+
+    def smea_round() -> np.ndarray:
+        strat = strategy("aggregation=smea min-train-clients=3")
+        five = [reply(n, model(u), examples=10) for n, u in enumerate(updates(5, 1.0, seed=2), 1)]
+        return flat(strat.aggregate_train(3, five)[0])
+
+    torch.manual_seed(0)
+    first = smea_round()
+    after = torch.rand(1)
+    torch.manual_seed(0)
+    np.testing.assert_array_equal(smea_round(), first)
+    assert torch.equal(torch.rand(1), after), "the server's torch generator is untouched"
+
+
+@pytest.mark.parametrize(
+    ("attack", "expected"),
+    [
+        ("sign-flipping", lambda honest, own: -honest.mean(axis=0)),
+        ("ipm", lambda honest, own: -2.0 * honest.mean(axis=0)),
+        ("alie", lambda honest, own: honest.mean(axis=0) + 1.5 * honest.std(axis=0, ddof=1)),
+        ("mimic", lambda honest, own: honest[0]),
+        ("negated", lambda honest, own: -2.9 * own),
+    ],
+)
+def test_the_benchmarks_attacker_replaces_the_hostile_updates_before_zk0_checks_them(attack, expected):
+    """``python -m zk0.bench privacy --attacks``: the hostile clients' (4 and 5) updates arrive at
+    zk0's checks as ByzFL's attack of the three honest ones (or their own times the factor), each
+    the same; with the mean and no clip (``update-clip=0``) the round's model is their average."""
+    from zk0.bench.attacks import AttackedStrategy
+
+    AttackedStrategy.attack, AttackedStrategy.hostile, AttackedStrategy.factor = attack, frozenset({4, 5}), -2.9
+    sent = np.stack(updates(5, 1.0, seed=11))
+    strat = strategy("update-clip=0", kind=AttackedStrategy)
+    valid = strat.valid_updates(1, [reply(n, model(u), examples=10) for n, u in enumerate(sent, 1)])
+    received = {int(m.content["client"]["index"]): flat(m.content["arrays"]) for m in valid}
+    honest = sent[:3]
+    for client in (4, 5):
+        np.testing.assert_allclose(received[client], expected(honest, sent[client - 1]), rtol=1e-4, atol=1e-6)
+    for client in (1, 2, 3):
+        np.testing.assert_array_equal(received[client], sent[client - 1])
 
 
 def test_the_server_optimiser_steps_from_the_robust_combination():
@@ -308,11 +393,15 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
 
     from zk0.bench.privacy import NON_PRIVATE, build_parser, earlier_seeds, planned_runs, summary
 
-    args = build_parser().parse_args(["--epsilons", "8", "--aggregations", "mean", "median"])
+    args = build_parser().parse_args(["--epsilons", "8", "--aggregations", "mean", "nnm+meamed", "--hostile", "1", "3"])
     plan = planned_runs(args, owner_clip=0.3)
-    assert list(plan) == [NON_PRIVATE, "record e=8", "owner e=8", "mean, hostile", "median", "median, hostile"]
+    assert list(plan) == [NON_PRIVATE, "record e=8", "owner e=8", "mean, negated x1", "mean, negated x3", "nnm+meamed",
+                          "nnm+meamed, negated x1", "nnm+meamed, negated x3"]  # fmt: skip
     assert plan["owner e=8"]["keys"] == {"dp": "owner", "dp-clip": 0.3, "dp-epsilon-budget": 8.0, "dp-delta": 1e-5}
-    assert plan["median, hostile"] == {"keys": {"aggregation": "median"}, "hostile": True}
+    assert plan["nnm+meamed, negated x3"] == {
+        "keys": {"aggregation": "meamed", "pre-aggregation": "nnm", "hostile-owners": 3}, "attack": ("negated", 3)
+    }
+    assert plan["nnm+meamed"]["keys"]["hostile-owners"] == 3, "its cost when nobody attacks, at the largest count"
     assert "owner e=8" not in planned_runs(args, owner_clip=None)
 
     outcomes = {NON_PRIVATE: [1, 1, 1, 1, 0, 0, 0, 0], "median": [1, 1, 0, 0, 0, 0, 0, 0]}

@@ -37,8 +37,13 @@ DP_KINDS = (
     "owner",
     "record",
 )  # differential privacy: none, of each owner (server), of each demonstration (client)
-# How the server combines the round's updates (zk0.federation.aggregation): the weighted mean, or one of Flower's robust rules
-AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum", "multi-krum")
+# How the server combines the round's updates (zk0.federation.robust): the weighted mean, or a robust rule of
+# Flower's or of ByzFL's; ByzFL's pre-aggregators may come first (before ByzFL's rules or the mean)
+FLOWER_RULES = ("median", "trimmed-mean", "krum", "multi-krum")
+BYZFL_RULES = ("geometric-median", "centered-clipping", "mda", "meamed", "caf", "smea")
+AGGREGATIONS = ("mean", *FLOWER_RULES, *BYZFL_RULES)
+COUNTING_RULES = ("mda", "meamed", "caf", "smea")  # ByzFL's rules that take hostile-owners (as f): n > 2 f
+PRE_AGGREGATIONS = ("none", "nnm", "arc")
 
 
 class ConfigError(Zk0Error):
@@ -113,9 +118,10 @@ class RunConfig:
     )
     dp_delta: float = 1e-5  # the delta of (epsilon, delta)-DP
     dp_epsilon_budget: float = 8.0  # the run stops before a release would spend more epsilon than this
-    aggregation: str = "mean"  # mean (weighted) | median | trimmed-mean | krum | multi-krum (Flower's robust rules)
+    aggregation: str = "mean"  # mean (weighted), or a robust rule of Flower's or ByzFL's (zk0.federation.robust)
+    pre_aggregation: str = "none"  # none | nnm | arc: ByzFL's pre-aggregator before ByzFL's rule or the mean
     trim_fraction: float = 0.2  # trimmed-mean: the share of the largest and of the smallest values cut per weight
-    hostile_owners: int = 1  # krum/multi-krum: how many owners may be hostile
+    hostile_owners: int = 1  # how many owners the rule (Krum, ByzFL's f) must outvote
 
     @property
     def personal_peak_lr(self) -> float:
@@ -324,6 +330,19 @@ def _check_peft(cfg: RunConfig) -> None:
         )
 
 
+def _check_outvoting(cfg: RunConfig) -> None:
+    """A ByzFL rule or pre-aggregator that counts the hostile owners needs more than twice as many
+    updates a round; a round with fewer would keep the global model, so say so before any round."""
+    counts = cfg.aggregation in COUNTING_RULES or cfg.pre_aggregation != "none"
+    if counts and cfg.min_train_clients <= 2 * cfg.hostile_owners:
+        rule = cfg.aggregation if cfg.pre_aggregation == "none" else f"{cfg.pre_aggregation} then {cfg.aggregation}"
+        raise ConfigError(
+            f"Run-config key 'min-train-clients' = {cfg.min_train_clients} is too few for {rule} to outvote "
+            f"hostile-owners={cfg.hostile_owners}; expected min-train-clients of at least {2 * cfg.hostile_owners + 1} "
+            "(more than twice the hostile owners), or fewer hostile-owners."
+        )
+
+
 def _check_privacy(cfg: RunConfig) -> None:
     """A known DP kind and aggregation, and no combination whose guarantee would not hold.
 
@@ -347,10 +366,22 @@ def _check_privacy(cfg: RunConfig) -> None:
             f"Run-config key 'trim-fraction' got {cfg.trim_fraction!r}; expected a value >= 0 and < 0.5 (the share "
             "cut from each end, so some values are left to average)."
         )
-    if cfg.dp == "owner" and cfg.aggregation != "mean":
+    if cfg.pre_aggregation not in PRE_AGGREGATIONS:
         raise ConfigError(
-            f"Run-config key 'aggregation' = {cfg.aggregation!r} cannot go with dp='owner': the accountant's epsilon "
-            "holds for the mean of clipped updates only; expected aggregation='mean', or dp='record' or 'off'."
+            f"Run-config key 'pre-aggregation' got {cfg.pre_aggregation!r}; expected one of {list(PRE_AGGREGATIONS)}."
+        )
+    if cfg.pre_aggregation != "none" and cfg.aggregation in FLOWER_RULES:
+        raise ConfigError(
+            f"Run-config key 'pre-aggregation' = {cfg.pre_aggregation!r} cannot go before Flower's "
+            f"aggregation={cfg.aggregation!r}, which takes the owners' updates as they came; expected 'mean' or one "
+            f"of ByzFL's rules {list(BYZFL_RULES)}, or pre-aggregation='none'."
+        )
+    _check_outvoting(cfg)
+    if cfg.dp == "owner" and (cfg.aggregation != "mean" or cfg.pre_aggregation != "none"):
+        raise ConfigError(
+            f"Run-config key 'aggregation' = {cfg.aggregation!r} (pre-aggregation={cfg.pre_aggregation!r}) cannot go "
+            "with dp='owner': the accountant's epsilon holds for the mean of clipped updates only; expected "
+            "aggregation='mean' with pre-aggregation='none', or dp='record' or 'off'."
         )
     if cfg.dp == "owner" and cfg.averaging == "fednova":
         raise ConfigError(

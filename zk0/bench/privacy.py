@@ -10,10 +10,14 @@ every run through the real app (``flwr run``, simulated clients), once per ``--s
 - **owner e=E**: ``dp = "owner"``, Flower's central DP calibrated by dp-accounting so that the
   run's rounds spend E, each update clipped to the median update norm the non-private run's
   first round measured (the usual choice: about half the updates are clipped);
-- for each ``--aggregations`` rule A, **A, hostile**: the last owner sends its trained update
-  negated and scaled by ``--hostile-factor`` (2.9: under ``update-clip = 3`` times the others'
-  median, so the clip passes it), a real ClientApp (zk0.bench.robust's); and **A** without it
-  (the rule's cost when nobody attacks; ``mean`` without it is the non-private run).
+- for each ``--aggregations`` rule A (Flower's or ByzFL's; ``nnm+meamed`` is ByzFL's NNM
+  pre-aggregator then its Meamed), each ``--attacks`` attack K and each ``--hostile`` count H,
+  **A, K xH**: the last H owners are hostile. ``negated``: each sends its trained update negated
+  and scaled by ``--hostile-factor`` (2.9: under ``update-clip = 3`` times the others' median, so
+  the clip passes it); the others are ByzFL's attacks of the honest updates, which only an
+  attacker who sees them all could send, substituted at the server (zk0.bench.attacks). And **A**
+  without them (the rule's cost when nobody attacks, its ``hostile-owners`` the largest H;
+  ``mean`` without them is the non-private run).
 
 Every final model is rolled out on the same ``--sim-episodes`` seeded episodes in the server's
 span of conditions: success with its 95% interval, and McNemar's test against the same seed's
@@ -22,7 +26,8 @@ Prints the tables and writes JSON (``--json``).
 
     python -m zk0.bench privacy [--owners 16 | --registry configs/sim-cube-registry.toml] [--demos 10] [--rounds 20] [--local-steps 75]
         [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
-        [--aggregations mean median trimmed-mean krum multi-krum] [--hostile-factor 2.9]
+        [--aggregations mean median trimmed-mean krum multi-krum nnm+meamed ...] [--attacks negated alie ...]
+        [--hostile 1 3] [--hostile-factor -2.9]
         [--sim-episodes 100] [--output-dir outputs/bench-privacy] [--json FILE] [--seeds-from JSON]
 
 ``--seeds-from`` adds the seeds of an earlier run of the same settings (its JSON) to the tables,
@@ -43,11 +48,11 @@ import torch
 from zk0.artifacts.logs import native_output_to
 from zk0.artifacts.resume import checkpoint_trainable
 from zk0.artifacts.run_folder import checkpoints
+from zk0.bench.attacks import ATTACKS, attacked_app
 from zk0.bench.client import write_json
 from zk0.bench.models import SERVER, closed_loop_all, generate
-from zk0.bench.robust import scaled_client_app
 from zk0.common.errors import OneSentenceParser, Zk0Error, positive
-from zk0.config import AGGREGATIONS, OFFLINE_MODELS, RunConfig, from_run_config
+from zk0.config import AGGREGATIONS, BYZFL_RULES, OFFLINE_MODELS, PRE_AGGREGATIONS, RunConfig, from_run_config
 from zk0.data.loaders import open_evaluation, open_metadata
 from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.deployment.simulation import run_federation
@@ -76,18 +81,30 @@ def owner_registry(parser: OneSentenceParser, path: Path):
         parser.error(f"--registry: {str(err).rstrip('.')}")
 
 
+# --aggregations: a rule, or ByzFL's pre-aggregator and a rule after it ("nnm+meamed")
+RULES = (*AGGREGATIONS, *(f"{pre}+{rule}" for pre in PRE_AGGREGATIONS[1:] for rule in ("mean", *BYZFL_RULES)))
+
+
+def rule_keys(rule: str, hostile: int) -> dict:
+    """The run-config keys of ``--aggregations``' ``rule`` outvoting ``hostile`` owners."""
+    pre, _, name = rule.rpartition("+")
+    return {"aggregation": name, **({"pre-aggregation": pre} if pre else {}), "hostile-owners": hostile}
+
+
 def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
-    """label -> the run-config keys it adds, and whether its last owner is hostile."""
-    runs: dict[str, dict] = {NON_PRIVATE: {"keys": {}, "hostile": False}}
+    """label -> the run-config keys it adds, and its attack (name, hostile owners) or None."""
+    runs: dict[str, dict] = {NON_PRIVATE: {"keys": {}, "attack": None}}
     for epsilon in args.epsilons:
         privacy = {"dp-epsilon-budget": epsilon, "dp-delta": args.delta}
-        runs[f"record e={epsilon:g}"] = {"keys": {"dp": "record", **privacy}, "hostile": False}
+        runs[f"record e={epsilon:g}"] = {"keys": {"dp": "record", **privacy}, "attack": None}
         if owner_clip is not None:
-            runs[f"owner e={epsilon:g}"] = {"keys": {"dp": "owner", "dp-clip": owner_clip, **privacy}, "hostile": False}
+            runs[f"owner e={epsilon:g}"] = {"keys": {"dp": "owner", "dp-clip": owner_clip, **privacy}, "attack": None}
     for rule in args.aggregations:
         if rule != "mean":
-            runs[rule] = {"keys": {"aggregation": rule}, "hostile": False}
-        runs[f"{rule}, hostile"] = {"keys": {"aggregation": rule}, "hostile": True}
+            runs[rule] = {"keys": rule_keys(rule, max(args.hostile)), "attack": None}
+        for attack in args.attacks:
+            for hostile in args.hostile:
+                runs[f"{rule}, {attack} x{hostile}"] = {"keys": rule_keys(rule, hostile), "attack": (attack, hostile)}
     return runs
 
 
@@ -187,7 +204,7 @@ def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> di
 
 
 SAME = ("owners", "registry", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
-        "aggregations", "hostile_factor", "sim_episodes")  # fmt: skip
+        "aggregations", "attacks", "hostile", "hostile_factor", "sim_episodes")  # fmt: skip
 
 
 def earlier_seeds(args, parser: OneSentenceParser) -> dict:
@@ -225,8 +242,12 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument("--delta", type=positive(float), default=1e-5)
     parser.add_argument("--no-owner-level", action="store_true", help="skip the owner-level DP runs")
     parser.add_argument("--seeds", type=int, nargs="+", default=[42, 43])
-    parser.add_argument("--aggregations", nargs="*", choices=AGGREGATIONS, default=list(AGGREGATIONS))
-    parser.add_argument("--hostile-factor", type=float, default=-2.9)
+    parser.add_argument(
+        "--aggregations", nargs="*", choices=RULES, default=["mean", "median", "trimmed-mean", "krum", "multi-krum"]
+    )
+    parser.add_argument("--attacks", nargs="+", choices=ATTACKS, default=["negated"], help="zk0.bench.attacks")
+    parser.add_argument("--hostile", type=positive(int), nargs="+", default=[1], help="hostile owners, the last ones")
+    parser.add_argument("--hostile-factor", type=float, default=-2.9, help="negated: the hostile update's factor")
     parser.add_argument("--sim-episodes", type=positive(int), default=100)
     parser.add_argument("--output-dir", default="outputs/bench-privacy")
     parser.add_argument("--json", default=None, help="write the figures here")
@@ -253,18 +274,30 @@ def main(argv: list[str] | None = None) -> int:
         args.owners = len(owner_registry(parser, registry).clients)
     else:
         registry = owners_registry(out, args.owners)
-    if args.owners < 4:
-        parser.error(f"--owners got {args.owners}; expected 4 or more (one hostile owner and three to outvote it)")
+    if args.owners < 2 * max(args.hostile) + 2:
+        parser.error(
+            f"--owners got {args.owners}; expected {2 * max(args.hostile) + 2} or more (--hostile "
+            f"{max(args.hostile)} owners, more than twice as many to outvote them, and one a round may miss)"
+        )
     with native_output_to(out / "assets.log"):
         generate(load_registry(str(registry)), args.demos)
-    hostile_app = scaled_client_app(out / "hostile-app", args.owners - 1, args.hostile_factor)
+    apps = {
+        (attack, hostile): attacked_app(
+            out / f"attacked-app-{attack}-x{hostile}",
+            attack,
+            range(args.owners - hostile, args.owners),
+            args.hostile_factor,
+        )
+        for attack in args.attacks
+        for hostile in args.hostile
+    }
     started = time.perf_counter()
     figures: dict = {"settings": vars(args), "runs": {}}
     finals: dict[str, Path] = {}
 
     def train(label: str, seed: int, plan: dict) -> dict | None:
         name = f"{label} seed {seed}"
-        app = hostile_app if plan["hostile"] else PROJECT_ROOT
+        app = apps[plan["attack"]] if plan["attack"] else PROJECT_ROOT
         config = run_config(args, registry, seed, plan["keys"])
         history = run_federation(config, args.owners, out / name.replace(" ", "-"), name, app)
         if history is not None:

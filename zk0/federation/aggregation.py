@@ -6,7 +6,7 @@ it adds what a federation of robot owners needs: replies whose arrays are non-fi
 not match the global model's names/shapes/dtypes are rejected and logged, not averaged; an
 update more than ``update-clip`` times the others' median size is scaled down to that median
 (one client's broken normalisation, bug or scaled update cannot wreck the model); with
-``aggregation`` one of Flower's robust rules combines the updates instead of the mean
+``aggregation`` a robust rule of Flower's or ByzFL's combines the updates instead of the mean
 (zk0.federation.robust), and with ``dp = "owner"`` Flower's DP mechanism clips, averages and noises them
 (zk0.federation.privacy); either way the wrapped strategy's server optimiser steps from the result; FedProx's
 ``proximal-mu`` goes into every train config, whatever the optimiser; federated evaluation runs
@@ -38,7 +38,7 @@ from loguru import logger
 
 from zk0.common.errors import REFUSED, Zk0Error
 from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
-from zk0.federation.robust import combine
+from zk0.federation.robust import ByzflRule, combine, rule_name
 from zk0.federation.server_optimisers import optimiser_name, optimiser_state
 from zk0.federation.updates import scaled_update, steps_taken, update_norm, update_problem
 from zk0.federation.waiting import OwnersGone, OwnersWatch
@@ -108,7 +108,7 @@ class ValidatingStrategy(Strategy):
         update_clip: float = 0.0,
         averaging: str = "samples",
         privacy: OwnerLevelDP | None = None,
-        rule: FedAvg | None = None,
+        rule: FedAvg | ByzflRule | None = None,
         owners: OwnersWatch | None = None,
     ) -> None:
         self.inner = inner
@@ -123,7 +123,7 @@ class ValidatingStrategy(Strategy):
         self.update_clip = update_clip  # an update above this times the others' median norm is scaled to it; 0 = off
         self.averaging = averaging  # updates of unequal steps: "fednova" (normalised by steps) or "samples"
         self.privacy = privacy  # owner-level DP: Flower's clip, mean and noise replace update-clip and the weights
-        self.rule = rule  # a robust rule of Flower's (zk0.federation.robust) in place of the mean; None: the mean
+        self.rule = rule  # Flower's or ByzFL's robust rule (zk0.federation.robust) in place of the mean; None: the mean
         self.owners = owners  # watches Flower's wait for enough connected owners; None: Flower's wait alone
         self.current: ArrayRecord | None = None  # the global model this round's updates start from
         self.evaluation: MetricRecord | None = None  # the server's evaluation of the latest round's model
@@ -137,7 +137,7 @@ class ValidatingStrategy(Strategy):
             optimiser_name(self.inner),
             self.proximal_mu,
             "replaced by owner-level DP's clip" if self.privacy else self.update_clip or "off",
-            f"aggregation {type(self.rule).__name__}" if self.rule else "the weighted mean",
+            f"aggregation {rule_name(self.rule)}" if self.rule else "the weighted mean",
         )
         if self.privacy:
             self.privacy.mechanism.summary()
@@ -317,7 +317,11 @@ class ValidatingStrategy(Strategy):
             if self.averaging == "fednova":
                 self.normalise_steps(server_round, valid, current)
             if self.rule is not None:
-                self.replace_updates(valid, combine(self.rule, server_round, valid))
+                combined = combine(self.rule, server_round, valid, current, self.inner.arrayrecord_key)
+                if combined is None:
+                    self.observer.record_clients("train", server_round, [m.content for m in valid], None, {})
+                    return None, None
+                self.replace_updates(valid, combined)
         arrays, metrics = self.inner.aggregate_train(server_round, valid)
         self.observer.record_clients("train", server_round, [m.content for m in valid], metrics, {})
         return arrays, metrics
