@@ -90,8 +90,9 @@ def workspace(tmp_path_factory):
 
 def zk0(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     """``zk0 args``; `zk0 assets` may record the simulator's demonstrations (80 s idle, minutes
-    beside the rest of the suite), or wait on another test's recording of them."""
-    timeout = 900 if args[0] == "assets" else 120
+    beside the rest of the suite), or wait on another test's recording of them, and `zk0 pretrain`
+    builds a policy for each public set."""
+    timeout = 900 if args[0] in ("assets", "pretrain") else 120
     command = [str(BIN / "zk0"), *args]
     return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=timeout, check=False)
 
@@ -149,6 +150,18 @@ def in_this_process(call, argv: list[str], cwd: Path = PROJECT_ROOT) -> subproce
     return subprocess.CompletedProcess(argv, code or 0, out.getvalue(), err.getvalue())
 
 
+def pretrained(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
+    """The documented `zk0 pretrain`, for real in the workspace but for 2 steps (the example's
+    count is a study's; each step is the federation's own), once: the `flwr run` after it
+    federates from its folder."""
+    tokens = list(tokens)
+    if (workspace / tokens[tokens.index("--out") + 1]).exists():
+        return subprocess.CompletedProcess(tokens, 0, "", "")
+    tokens[tokens.index("--steps") + 1] = "2"
+    made = zk0("assets", "--run-config", tokens[tokens.index("--run-config") + 1], cwd=workspace)
+    return made if made.returncode else zk0(*tokens[1:], cwd=workspace)
+
+
 def parse_benchmark(argv: list[str]) -> int:
     """A benchmark's documented options through its own parser: a misspelt option, value or
     benchmark fails as it would for the user (each benchmark runs in its own tests)."""
@@ -175,6 +188,8 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
     if tokens[:2] == ["zk0", "export"]:  # for real, from a run folder made where the example names it
         run_folder(workspace / tokens[2])
         return in_this_process(zk0_main, tokens[1:], cwd=workspace)
+    if tokens[:2] == ["zk0", "pretrain"]:
+        return pretrained(tokens, workspace)
     if tokens[0] == "zk0":
         return zk0(*tokens[1:], cwd=workspace)
     if tokens[0] == "./train.sh":
@@ -197,6 +212,11 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
             if made.returncode:
                 return made
         option = ["--preset", str(PROJECT_ROOT / config)] if config.endswith(".toml") else ["--run-config", config]
+        base = re.search(r"model='(outputs/[^']+)'", config)
+        if base:  # the model the docs' `zk0 pretrain` makes, checked where it made it
+            (pretrain,) = [shlex.split(c) for _, c in COMMANDS if c.startswith("zk0 pretrain") and base[1] in c]
+            made = pretrained(pretrain, workspace)
+            return made if made.returncode else in_this_process(zk0_main, ["check", *option], cwd=workspace)
         return in_this_process(zk0_main, ["check", *option])
     if tokens[0] == "lerobot-rollout":
         policy = next(token.split("=", 1)[1] for token in tokens if token.startswith("--policy.path="))
@@ -217,8 +237,8 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
 def marked(doc: str, command: str):
     """`zk0 assets` of a simulated registry records its demonstrations, and of many owners generates
     sixteen datasets (as does checking a run on them, which makes them first): the full suite's."""
-    makes_assets = command.startswith(("zk0 assets", "flwr run"))
-    slow = makes_assets and ("sim" in command or "owners" in command)
+    makes_assets = command.startswith(("zk0 assets", "flwr run", "zk0 pretrain"))
+    slow = makes_assets and ("sim" in command or "owners" in command or "public" in command)
     return pytest.param(doc, command, marks=[pytest.mark.slow] if slow else [], id=f"{doc}:{command[:60]}")
 
 

@@ -1,5 +1,5 @@
-"""The ``zk0`` command: offline assets, the checks the set-up scripts need, the deployment's
-processes, and an owner's policy exported from a run."""
+"""The ``zk0`` command: offline assets, the checks the set-up scripts need, a policy pretrained on
+public data, the deployment's processes, and an owner's policy exported from a run."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from tqdm import tqdm
 from zk0.artifacts.logs import native_output_to
 from zk0.common import machine
 from zk0.common.cache import default_cache_root
-from zk0.common.errors import OneSentenceParser, Zk0Error
+from zk0.common.errors import OneSentenceParser, Zk0Error, positive
 from zk0.config import RunConfig, from_run_config
 from zk0.data.assets import (
     BACKBONES,
@@ -128,6 +128,22 @@ def _check(args: argparse.Namespace) -> int:
         f"Run config OK: {run.num_server_rounds} rounds x {run.local_steps} local steps, "
         f"{len(registry.clients)} client datasets. Datasets OK: {', '.join(report.checked) or 'none'}{absent}."
     )
+    return 0
+
+
+def _pretrain(args: argparse.Namespace) -> int:
+    """Pretrain the run's policy on the registry's public sets; say how to federate from it."""
+    run, _ = _merged_run(args.preset, args.run_config)
+    from zk0.federation.pretraining import pretrain, public_sets  # torch and lerobot: after the config is checked
+
+    public_sets(run)  # no public datasets: one sentence before anything is built
+    out = Path(args.out).expanduser().resolve()
+    done = pretrain(run, args.steps, out)
+    print(
+        f"Pretrained {run.policy} ({run.model}) for {args.steps} steps on {len(done['public-sets'])} public set(s) "
+        f"in {done['wall-s']:.0f} s (train loss {done['train-loss']:.4g}): {out}"
+    )
+    print(f"Federate from it: flwr run . --run-config \"registry='{run.registry}' model='{out}'\"")
     return 0
 
 
@@ -243,6 +259,15 @@ def build_parser() -> argparse.ArgumentParser:
         "the clients that train at once sized to the memory available; refuse if one does not fit",
     )
     check.set_defaults(func=_check)
+
+    pretrain = commands.add_parser(
+        "pretrain", help="train the run's policy on the registry's public datasets: a starting point to federate from"
+    )
+    pretrain.add_argument("--run-config", action="append", default=[], help="as for flwr run: registry, model, lr...")
+    pretrain.add_argument("--preset", help="a preset (configs/presets/<name>.toml) or file, applied before overrides")
+    pretrain.add_argument("--steps", type=positive(int), default=1000, help="optimizer steps (default 1000)")
+    pretrain.add_argument("--out", required=True, help="a new folder: the lerobot policy model='<folder>' starts from")
+    pretrain.set_defaults(func=_pretrain)
 
     certs = commands.add_parser("certs", help="create a CA, the SuperLink certificate and SuperNode key pairs")
     certs.add_argument("--out", default="certificates", help="folder to write them to (default: certificates)")

@@ -224,7 +224,23 @@ def save_checkpoint(
     models = run_dir / "models"
     models.mkdir(parents=True, exist_ok=True)
     final = models / (name or f"checkpoint_round_{server_round}")
-    staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=models))
+
+    def round_files(staging: Path) -> None:
+        write_json(staging / ROUND_FILE, {"round": server_round, evaluated_by: evaluation or {}})
+        if server_state is not None:
+            optimiser, arrays = server_state
+            save_file(arrays, staging / SERVER_STATE_FILE, metadata={"server-optimiser": optimiser})
+
+    return save_policy_folder(bundle, final, client_stats, round_files)
+
+
+def save_policy_folder(
+    bundle: PolicyBundle, final: Path, client_stats: dict[str, dict], extra: Callable[[Path], None] | None = None
+) -> Path:
+    """``bundle`` as a lerobot pretrained-model folder at ``final`` (its policy, LoRA merged, and
+    processors; ``client_stats/<name>.json`` each dataset's own statistics; whatever ``extra``
+    writes), written under a temporary name beside it and renamed into place."""
+    staging = Path(tempfile.mkdtemp(prefix=f".{final.name}.", dir=final.parent))
     try:
         adapters.merged(bundle.policy).save_pretrained(staging)
         if adapters.is_adapted(bundle.policy):
@@ -233,10 +249,8 @@ def save_checkpoint(
         bundle.postprocessor.save_pretrained(staging)
         for client, stats in client_stats.items():
             write_json(staging / "client_stats" / f"{client}.json", serialize_dict(stats))
-        write_json(staging / ROUND_FILE, {"round": server_round, evaluated_by: evaluation or {}})
-        if server_state is not None:
-            optimiser, arrays = server_state
-            save_file(arrays, staging / SERVER_STATE_FILE, metadata={"server-optimiser": optimiser})
+        if extra:
+            extra(staging)
         _swap_in(staging, final)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -27,13 +27,15 @@ from zk0.data.assets.datasets import SPECS
 from zk0.sim.tasks import SIM_SPECS
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
-ROLES = ("client", "server")
+# client: an owner's; server: the server's evaluation set; public: the server's to pretrain on (zk0 pretrain)
+ROLES = ("client", "server", "public")
 # [tool.zk0.owners] kind -> (an owner's dataset name, the server's evaluation set)
 OWNER_KINDS = {
     "synth": ("synth-owner-{}", "synth-so100-eval"),
     "sim": ("sim-so101-owner-{}", "sim-so101-eval"),
     "sim-cube": ("sim-so101-owner-{}-cube", "sim-so101-eval-cube"),
 }
+PUBLIC_KINDS = {"sim": "sim-so101-public-{}", "sim-cube": "sim-so101-public-{}-cube"}  # [tool.zk0.owners] public = K
 
 
 class RegistryError(Zk0Error):
@@ -80,6 +82,11 @@ class Registry:
     @property
     def clients(self) -> list[DatasetEntry]:
         return [e for e in self.entries if e.role == "client"]
+
+    @property
+    def public(self) -> list[DatasetEntry]:
+        """The server's public demonstrations, which it may pretrain on: never an owner's."""
+        return [e for e in self.entries if e.role == "public"]
 
     @property
     def server(self) -> DatasetEntry:
@@ -144,23 +151,47 @@ def load_registry(path: str | Path = "") -> Registry:
             raise RegistryError(f"Registry entry {sorted(taken)[0]!r} is also one of [tool.zk0.owners]; rename it.")
         has_server = any(e.role == "server" for e in entries)
         entries = [*owners, *entries, *([] if has_server else [server])]
+    _check_public_apart(entries)
     return Registry(entries)
 
 
+def _check_public_apart(entries: list[DatasetEntry]) -> None:
+    """A public set (what the server pretrains on) is no owner's data and not the evaluation set:
+    no dataset appears under the public role and another."""
+    for public in (e for e in entries if e.role == "public"):
+        for other in (e for e in entries if e.role != "public"):
+            if (public.repo_id, public.root) == (other.repo_id, other.root):
+                raise RegistryError(
+                    f"Registry entries {public.name!r} (public) and {other.name!r} ({other.role}) are the same dataset "
+                    f"{public.repo_id!r}; expected public demonstrations apart from every owner's and the server's "
+                    "evaluation set."
+                )
+
+
 def _owners(raw: dict) -> tuple[list[DatasetEntry], DatasetEntry]:
-    """``[tool.zk0.owners]``: its ``count`` generated owners of ``kind``, and that kind's server set."""
+    """``[tool.zk0.owners]``: its ``count`` generated owners of ``kind`` (then ``public`` generated
+    public sets of a simulated kind, drawn apart from every owner's), and that kind's server set."""
     if not isinstance(raw, dict):
         raise RegistryError(f"[tool.zk0.owners] must be a table (count = N, kind = ...), not {raw!r}.")
-    unknown = sorted(set(raw) - {"count", "kind"})
+    unknown = sorted(set(raw) - {"count", "kind", "public"})
     if unknown:
-        raise RegistryError(f"[tool.zk0.owners] has an unknown key {unknown[0]!r}; expected count and kind.")
-    count, kind = raw.get("count"), raw.get("kind", "synth")
+        raise RegistryError(f"[tool.zk0.owners] has an unknown key {unknown[0]!r}; expected count, kind and public.")
+    count, kind, public = raw.get("count"), raw.get("kind", "synth"), raw.get("public", 0)
     if type(count) is not int or not 1 <= count <= MAX_OWNERS:
         raise RegistryError(f"[tool.zk0.owners] count = {count!r}; expected a whole number from 1 to {MAX_OWNERS}.")
     if kind not in OWNER_KINDS:
         raise RegistryError(f"[tool.zk0.owners] kind = {kind!r}; expected one of {list(OWNER_KINDS)}.")
+    if type(public) is not int or not 0 <= public <= MAX_OWNERS:
+        raise RegistryError(f"[tool.zk0.owners] public = {public!r}; expected a whole number from 0 to {MAX_OWNERS}.")
+    if public and kind not in PUBLIC_KINDS:
+        raise RegistryError(
+            f"[tool.zk0.owners] public = {public} needs a simulated kind; expected kind one of {list(PUBLIC_KINDS)}, "
+            f"not {kind!r}."
+        )
     form, server = OWNER_KINDS[kind]
-    return [_generated_entry(form.format(i)) for i in range(count)], _generated_entry(server, "server")
+    owners = [_generated_entry(form.format(i)) for i in range(count)]
+    public_sets = [_generated_entry(PUBLIC_KINDS[kind].format(i), "public") for i in range(public)]
+    return [*owners, *public_sets], _generated_entry(server, "server")
 
 
 def _generated_entry(name: str, role: str = "client") -> DatasetEntry:

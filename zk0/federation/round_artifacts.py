@@ -24,8 +24,6 @@ from pathlib import Path
 
 import numpy as np
 from flwr.app import ArrayRecord, MetricRecord, RecordDict
-from lerobot.datasets.compute_stats import aggregate_stats
-from lerobot.policies import make_pre_post_processors
 from loguru import logger
 
 from zk0.artifacts.hub import can_push, publish
@@ -44,7 +42,7 @@ from zk0.artifacts.tracking import Tracker
 from zk0.config import RunConfig
 from zk0.data.registry import DatasetEntry, Registry
 from zk0.federation import stopping
-from zk0.federation.stats import stats_from_record
+from zk0.federation.stats import stats_from_record, with_merged_stats
 from zk0.federation.wire import CLIENT
 from zk0.learning.policy import PolicyBundle, set_trainable
 from zk0.learning.rates import success_text
@@ -316,9 +314,7 @@ class RoundArtifacts:
 
     def checkpoint_bundle(self, client_stats: dict[int, dict]) -> PolicyBundle:
         """The global policy with processors carrying the clients' merged statistics (lerobot's aggregation)."""
-        stats = aggregate_stats(list(client_stats.values())) if client_stats else self.bundle.stats
-        pre, post = make_pre_post_processors(self.bundle.policy.config, dataset_stats=stats)
-        return PolicyBundle(self.bundle.policy, pre, post, self.bundle.trainable_names, self.bundle.device, stats)
+        return with_merged_stats(self.bundle, list(client_stats.values()))
 
     def progress(self, server_round: int) -> str:
         """``Round 3/10: 4 clients trained, train loss 0.53, server action MSE 61.5, 12.3 s/round, about 1m 26s left``

@@ -2,7 +2,7 @@
 
 Statistics are data, not weights: each client normalises with its own, and sends them
 alongside its update only so the server can merge them (lerobot's ``aggregate_stats``)
-into the global checkpoint. Keys are ``<feature>|<stat>``; values are flat float lists,
+into the global checkpoint (``with_merged_stats``). Keys are ``<feature>|<stat>``; values are flat float lists,
 with the array shape under ``<feature>|<stat>|shape``.
 """
 
@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 from flwr.app import ConfigRecord
+from lerobot.datasets.compute_stats import aggregate_stats
+from lerobot.policies import make_pre_post_processors
+
+from zk0.learning.policy import PolicyBundle
 
 SEP = "|"
 
@@ -35,3 +39,11 @@ def stats_from_record(record: ConfigRecord) -> dict[str, dict[str, np.ndarray]]:
         shape = [int(s) for s in record[f"{key}{SEP}shape"]]
         stats.setdefault(feature, {})[stat] = np.asarray(value, dtype=np.float64).reshape(shape if shape != [0] else ())
     return stats
+
+
+def with_merged_stats(bundle: PolicyBundle, stats: list[dict]) -> PolicyBundle:
+    """``bundle``'s policy with processors carrying ``stats`` merged (lerobot's ``aggregate_stats``),
+    or its own statistics when there are none: what a checkpoint's processors normalise by."""
+    merged = aggregate_stats(stats) if stats else bundle.stats
+    pre, post = make_pre_post_processors(bundle.policy.config, dataset_stats=merged)
+    return PolicyBundle(bundle.policy, pre, post, bundle.trainable_names, bundle.device, merged)

@@ -114,6 +114,7 @@ OWNERS: tuple[DemoSpec, ...] = (
     DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
 )
 OWNER_SEED = 2026  # owner N's set-up comes from numpy's generator seeded with (OWNER_SEED, N)
+PUBLIC_SEED = 2028  # public set-up N's from (PUBLIC_SEED, N) (2027 is OUTSIDE_SEED)
 # What generated owners' rooms are drawn from: together with the hand-written owners', the span of
 # conditions a federation trains in (conditions outside it are drawn beyond every bound).
 OWNER_LIGHT = (0.55, 0.9)  # the main light's diffuse intensity
@@ -126,7 +127,20 @@ def sim_owner(index: int) -> DemoSpec:
     """Owner ``index`` of a many-owner federation (``sim-so101-owner-<index>``): a 6 x 12 cm part of
     the server's span, two of its four cube colours, its own lighting, front camera and table, and
     the expert's pace, drawn from a seeded distribution spanning the four hand-written owners'."""
-    rng = np.random.default_rng([OWNER_SEED, index])
+    return drawn_setup(OWNER_SEED, index, f"sim-so101-owner-{index}", f"zk0/sim_so101_owner_{index}")
+
+
+def sim_public(index: int) -> DemoSpec:
+    """Public set-up ``index`` (``sim-so101-public-<index>``): demonstrations the server records in
+    rooms of its own, to pretrain on before any owner federates (the public starting point a real
+    federation has, as smolvla_base's community datasets). Drawn from the owners' distribution
+    with a seed of its own, so no public set-up is an owner's or an evaluation condition."""
+    return drawn_setup(PUBLIC_SEED, index, f"sim-so101-public-{index}", f"zk0/sim_so101_public_{index}")
+
+
+def drawn_setup(seed: int, index: int, name: str, repo_id: str) -> DemoSpec:
+    """Set-up ``index`` of the draws seeded with ``seed``: region, colours, room and pace."""
+    rng = np.random.default_rng([seed, index])
     x0, y0 = float(rng.uniform(0.16, 0.22)), float(rng.uniform(-0.12, 0.0))
     colours = rng.choice(len(SERVER_TASK.colours), size=2, replace=False)
     look = Look(
@@ -140,9 +154,7 @@ def sim_owner(index: int) -> DemoSpec:
         colours=tuple(SERVER_TASK.colours[int(c)] for c in sorted(colours)),
         look=look,
     )
-    return DemoSpec(
-        f"sim-so101-owner-{index}", f"zk0/sim_so101_owner_{index}", task, speed=float(rng.uniform(0.12, 0.2))
-    )
+    return DemoSpec(name, repo_id, task, speed=float(rng.uniform(0.12, 0.2)))
 
 
 OUTSIDE_SEED = 2027
@@ -223,10 +235,10 @@ def beyond_span(look: Look, others: list[Look]) -> list[str]:
 
 def _generated(match) -> DemoSpec:
     kind, index = match["kind"], int(match["index"])
-    if kind == "owner":
+    if kind in ("owner", "public"):
         if match["at"]:  # an owner's conditions are made from the server's or a hand-written owner's
             raise KeyError(match.string)
-        spec = sim_owner(index)
+        spec = sim_owner(index) if kind == "owner" else sim_public(index)
     else:
         base = next(o for o in OWNERS if o.name == f"sim-so101-{match['at']}") if match["at"] else None
         spec = outside_condition(kind.removeprefix("outside-"), index, base)
@@ -236,7 +248,8 @@ def _generated(match) -> DemoSpec:
 SIM_SPECS: Catalogue[DemoSpec] = Catalogue(
     {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))},
     rf"sim-so101-(?:(?P<at>{'|'.join(o.name.removeprefix('sim-so101-') for o in OWNERS if o.role == 'client')})-)?"
-    rf"(?P<kind>owner|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?",
+    rf"(?P<kind>owner|public|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?",
     _generated,
-    "sim-so101-owner-<N>[-cube], sim-so101[-<owner>]-outside-<dim|bright|tint|camera|table>-<N>[-cube]",
+    "sim-so101-owner-<N>[-cube], sim-so101-public-<N>[-cube], "
+    "sim-so101[-<owner>]-outside-<dim|bright|tint|camera|table>-<N>[-cube]",
 )
