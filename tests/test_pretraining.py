@@ -104,3 +104,37 @@ def test_zk0_pretrain_writes_a_policy_that_lerobot_loads_and_a_federation_starts
     assert main(["pretrain", "--run-config", "model='tiny'", "--out", str(tmp_path / "other")]) == 2
     assert "has no public datasets to pretrain on" in capsys.readouterr().err
     assert not (tmp_path / "other").exists()
+
+
+def test_monna_without_public_sets_is_refused_before_round_1():
+    from zk0.config import ConfigError, from_run_config
+    from zk0.server_app import trusted_direction
+
+    run = from_run_config({"aggregation": "monna", "min-train-clients": 3})
+    with pytest.raises(ConfigError, match="'aggregation' = 'monna' scores the owners' updates against the server's own"):
+        trusted_direction(run, load_registry())
+    assert trusted_direction(from_run_config({}), load_registry()) is None, "no other rule trains on the server"
+
+
+@pytest.mark.slow
+def test_the_servers_trusted_update_is_trained_on_the_public_sets_the_same_in_a_rerun(tmp_path):
+    """The server's update on two public sets from a round's global model: it moves the model, a
+    second server (as after a resume) computes the same vector for the same round, and the next
+    round's differs (its batches come after this round's)."""
+    from zk0.config import from_run_config
+    from zk0.data.assets import ensure_dataset
+    from zk0.federation.trusted import TrustedDirection
+    from zk0.learning.policy import trainable_tensors
+
+    registry_path = tmp_path / "registry.toml"
+    registry_path.write_text('[tool.zk0.owners]\ncount = 1\nkind = "sim-cube"\npublic = 2\n')
+    registry = load_registry(registry_path)
+    for entry in registry.entries:
+        ensure_dataset(entry.name)
+    run = from_run_config({"registry": str(registry_path), "model": "tiny", "batch-size": 2, "local-steps": 2})
+    server = TrustedDirection(run, registry)
+    current = {name: t.numpy().copy() for name, t in trainable_tensors(server.bundle).items()}
+    first = server.update(1, current)
+    assert first.numel() == sum(a.size for a in current.values()) and float(first.norm()) > 0
+    assert not torch.equal(server.update(2, current), first), "round 2 trains on the batches after round 1's"
+    assert torch.equal(TrustedDirection(run, registry).update(1, current), first), "a rerun's round 1 is the same"

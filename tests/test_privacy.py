@@ -292,6 +292,39 @@ def test_the_benchmarks_attacker_replaces_the_hostile_updates_before_zk0_checks_
         np.testing.assert_array_equal(received[client], sent[client - 1])
 
 
+def test_the_trusted_direction_leaves_a_flipped_update_out_of_monnas_mean(caplog):
+    """``aggregation = "monna"``: four honest owners and one sending their mean flipped; the server's
+    own update (here the honest mean, as its public data would point) is the trusted one. MoNNA
+    averages the five updates nearest to it, its own included: the flipped one gets no weight,
+    and the server log names it."""
+    from loguru import logger
+
+    from zk0.federation.robust import ByzflRule
+
+    rng = np.random.default_rng(5)
+    direction = rng.normal(size=SIZE).astype(np.float32)
+    honest = [direction + 0.1 * u for u in updates(4, 1.0, seed=9)]
+    flipped = -np.mean(honest, axis=0)
+    server = np.mean(honest, axis=0)
+    asked = []
+
+    def trusted(server_round: int, current: dict) -> torch.Tensor:
+        asked.append((server_round, sorted(current)))
+        return torch.from_numpy(server.copy())
+
+    strat = strategy("update-clip=0 min-train-clients=3")
+    strat.rule = ByzflRule("monna", "none", 1, trusted)
+    said = []
+    sink = logger.add(lambda message: said.append(str(message)), level="INFO")
+    try:
+        result, _ = strat.aggregate_train(2, [reply(n, model(u), 10) for n, u in enumerate([*honest, flipped], 1)])
+    finally:
+        logger.remove(sink)
+    np.testing.assert_allclose(flat(result), np.mean([*honest, server], axis=0), rtol=1e-5, atol=1e-6)
+    assert asked == [(2, ["v", "w"])], "the server's update is asked for once, from the round's global model"
+    assert any("Round 2: left out the update(s) of client(s) [5], farthest from the server's own" in m for m in said)
+
+
 def test_the_server_optimiser_steps_from_the_robust_combination():
     """Nesterov (the default) with momentum 0.5 steps 1.5x from a rule's combination, as from a mean."""
     honest = updates(3, 1.0, seed=5)

@@ -40,9 +40,9 @@ DP_KINDS = (
 # How the server combines the round's updates (zk0.federation.robust): the weighted mean, or a robust rule of
 # Flower's or of ByzFL's; ByzFL's pre-aggregators may come first (before ByzFL's rules or the mean)
 FLOWER_RULES = ("median", "trimmed-mean", "krum", "multi-krum")
-BYZFL_RULES = ("geometric-median", "centered-clipping", "mda", "meamed", "caf", "smea")
+BYZFL_RULES = ("geometric-median", "centered-clipping", "mda", "meamed", "caf", "smea", "monna")
 AGGREGATIONS = ("mean", *FLOWER_RULES, *BYZFL_RULES)
-COUNTING_RULES = ("mda", "meamed", "caf", "smea")  # ByzFL's rules that take hostile-owners (as f): n > 2 f
+COUNTING_RULES = ("mda", "meamed", "caf", "smea", "monna")  # ByzFL's rules that take hostile-owners (as f): n > 2 f
 PRE_AGGREGATIONS = ("none", "nnm", "arc")
 
 

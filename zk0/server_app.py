@@ -29,16 +29,17 @@ from zk0.artifacts.resume import ResumePoint, find_resume_point
 from zk0.artifacts.run_folder import History, checkpoints, new_run_dir, write_json
 from zk0.artifacts.tracking import Tracker
 from zk0.common.errors import Zk0Error
-from zk0.config import RunConfig, from_run_config
+from zk0.config import ConfigError, RunConfig, from_run_config
 from zk0.data.loaders import DataError, DatasetSplit, eval_loader, open_evaluation
 from zk0.data.registry import Registry, load_registry
 from zk0.deployment.grid import PromptGrid
 from zk0.federation import stopping
 from zk0.federation.aggregation import ValidatingStrategy
 from zk0.federation.privacy import OwnerLevelDP, PrivacyBudgetSpent
-from zk0.federation.robust import make_rule
+from zk0.federation.robust import Trusted, make_rule
 from zk0.federation.round_artifacts import RoundArtifacts
 from zk0.federation.server_optimisers import make_strategy, restore_state
+from zk0.federation.trusted import TrustedDirection
 from zk0.federation.updates import array_signature
 from zk0.federation.waiting import OwnersGone, OwnersWatch
 from zk0.federation.wire import SHAPE
@@ -150,6 +151,21 @@ def preflight(run: RunConfig, registry: Registry, simulation: bool) -> LeRobotDa
     return report.server_meta
 
 
+def trusted_direction(run: RunConfig, registry: Registry) -> Trusted | None:
+    """``aggregation = "monna"``: the server's own update on the registry's public sets each round,
+    refused in one sentence before round 1 when the registry has none."""
+    if run.aggregation != "monna":
+        return None
+    with refusals_in_one_sentence():
+        if not registry.public:
+            raise ConfigError(
+                "Run-config key 'aggregation' = 'monna' scores the owners' updates against the server's own on public "
+                f"data, and registry {run.registry or 'pyproject.toml'!r} has none; expected entries with role = "
+                '"public" (or public = <count> in [tool.zk0.owners]), or another aggregation.'
+            )
+        return TrustedDirection(run, registry).update
+
+
 def owner_privacy(run: RunConfig, owners: int, resumed: ResumePoint | None) -> OwnerLevelDP | None:
     """Owner-level DP for ``dp = "owner"`` (``owners``: the registry's clients), continuing a resumed
     run's accounting from its checkpoint round's record; None otherwise."""
@@ -251,7 +267,7 @@ def main(grid: Grid, context: Context) -> None:
         update_clip=run.update_clip,
         averaging=run.averaging,
         privacy=privacy,
-        rule=make_rule(run, optimiser.weighted_by_key),
+        rule=make_rule(run, optimiser.weighted_by_key, trusted_direction(run, registry)),
         owners=OwnersWatch(run.min_train_clients, run.wait_for_owners_s, simulated=is_simulation(grid)),
     )
     # The run's folder name (clients keep their logs under a folder of that name on their own

@@ -23,7 +23,9 @@ each (the change every owner proposes to the global model), unweighted:
 - ``mda``: the mean of the ``n - f`` updates of smallest diameter (El-Mhamdi et al. 2020);
 - ``meamed``: per coordinate, the mean of the ``n - f`` values nearest the median (Xie et al. 2018);
 - ``caf`` and ``smea``: the mean weighted (``caf``) or restricted (``smea``) to the updates
-  whose spread along the largest direction of variance is least (Allouah et al. 2024).
+  whose spread along the largest direction of variance is least (Allouah et al. 2024);
+- ``monna``: the mean of the ``n - f`` updates nearest to the server's own update on its public
+  data, that one included (Farhadkhani et al. 2023; zk0.federation.trusted trains it).
 
 ``pre-aggregation`` puts one of ByzFL's pre-aggregators before any of these (or the mean):
 ``nnm`` replaces each update by the mean of its ``n - f`` nearest neighbours (Allouah et al.
@@ -48,6 +50,7 @@ from loguru import logger
 
 from zk0.config import BYZFL_RULES, COUNTING_RULES, RunConfig
 
+Trusted = Callable[[int, dict[str, np.ndarray]], torch.Tensor]  # (round, global model) -> the server's update
 CENTERED_CLIPPING_ITERATIONS = 3  # from the coordinate-wise median, which is already near the honest updates
 
 
@@ -56,8 +59,9 @@ class ByzflRule:
     updates flattened to one float32 vector each. A fresh aggregator every round, seeded by the
     round for those that draw (``caf``, ``smea``): a resumed run combines as the uninterrupted one."""
 
-    def __init__(self, name: str, pre_aggregation: str, hostile: int) -> None:
+    def __init__(self, name: str, pre_aggregation: str, hostile: int, trusted: Trusted | None = None) -> None:
         self.name, self.pre_aggregation, self.hostile = name, pre_aggregation, hostile
+        self.trusted = trusted  # monna: the server's own update each round (zk0.federation.trusted)
 
     def __str__(self) -> str:
         pre = f"{self.pre_aggregation} then " if self.pre_aggregation != "none" else ""
@@ -71,7 +75,7 @@ class ByzflRule:
 
     def steps(self, updates: torch.Tensor) -> list[Callable[[torch.Tensor], torch.Tensor]]:
         """ByzFL's pre-aggregator (if any) and aggregator, configured for this round's ``updates``."""
-        from byzfl import ARC, CAF, MDA, NNM, SMEA, CenteredClipping, GeometricMedian, Meamed
+        from byzfl import ARC, CAF, MDA, NNM, SMEA, CenteredClipping, GeometricMedian, Meamed, MoNNA
 
         f = self.hostile
         rules = {
@@ -81,6 +85,7 @@ class ByzflRule:
             "meamed": lambda: Meamed(f=f),
             "caf": lambda: CAF(f=f),
             "smea": lambda: SMEA(f=f),
+            "monna": lambda: MoNNA(f=f, idx=len(updates) - 1),  # the trusted update is the last
         }
         pre = {"nnm": lambda: NNM(f=f), "arc": lambda: ARC(f=f)}.get(self.pre_aggregation)
         rule = rules[self.name]() if self.name != "mean" else (lambda vectors: vectors.mean(dim=0))
@@ -91,12 +96,32 @@ class ByzflRule:
     ) -> ArrayRecord:
         """The global model moved by the rule's combination of the replies' updates (``key``: their arrays)."""
         updates = torch.stack([flatten(msg.content[key], current) for msg in replies])
+        if self.name == "monna":
+            updates = torch.cat([updates, self.trusted(server_round, current)[None]])
+            self.name_the_farthest(server_round, replies, updates)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(server_round)
             combined = updates
             for step in self.steps(updates):
                 combined = step(combined)
         return moved(current, combined)
+
+    def name_the_farthest(self, server_round: int, replies: list[Message], updates: torch.Tensor) -> None:
+        """Say which owners' updates lie farthest from the server's own: the ``hostile-owners`` that
+        MoNNA leaves out of its mean (the rest, and the server's, are averaged)."""
+        distances = torch.linalg.vector_norm(updates[:-1] - updates[-1], dim=1)
+        order = torch.argsort(distances, descending=True).tolist()
+        farthest, kept = order[: self.hostile], order[self.hostile :]
+        if not farthest or not kept:
+            return
+        logger.info(
+            "Round {}: left out the update(s) of client(s) {}, farthest from the server's own on its public data "
+            "(distance {:.3g}; the others' at most {:.3g})",
+            server_round,
+            sorted(int(replies[i].content["client"]["index"]) for i in farthest),
+            float(distances[farthest].min()),
+            float(distances[kept].max()),
+        )
 
 
 def centred_clipping(kind: type) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -132,12 +157,13 @@ def moved(current: dict[str, np.ndarray], update: torch.Tensor) -> ArrayRecord:
     return ArrayRecord(arrays)
 
 
-def make_rule(run: RunConfig, weighted_by_key: str) -> FedAvg | ByzflRule | None:
+def make_rule(run: RunConfig, weighted_by_key: str, trusted: Trusted | None = None) -> FedAvg | ByzflRule | None:
     """What combines the round's updates in place of the weighted mean: a Flower strategy (its
-    ``aggregate_train``), a ByzFL rule, or None for the weighted mean the server optimiser computes
-    itself (``aggregation = "mean"`` with no pre-aggregation)."""
+    ``aggregate_train``), a ByzFL rule (``monna`` with the server's ``trusted`` update), or None for
+    the weighted mean the server optimiser computes itself (``aggregation = "mean"`` with no
+    pre-aggregation)."""
     if run.aggregation in BYZFL_RULES or run.pre_aggregation != "none":
-        return ByzflRule(run.aggregation, run.pre_aggregation, run.hostile_owners)
+        return ByzflRule(run.aggregation, run.pre_aggregation, run.hostile_owners, trusted)
     if run.aggregation == "median":
         return FedMedian(weighted_by_key=weighted_by_key)
     if run.aggregation == "trimmed-mean":
