@@ -111,7 +111,9 @@ def test_monna_without_public_sets_is_refused_before_round_1():
     from zk0.server_app import trusted_direction
 
     run = from_run_config({"aggregation": "monna", "min-train-clients": 3})
-    with pytest.raises(ConfigError, match="'aggregation' = 'monna' scores the owners' updates against the server's own"):
+    with pytest.raises(
+        ConfigError, match="'aggregation' = 'monna' scores the owners' updates against the server's own"
+    ):
         trusted_direction(run, load_registry())
     assert trusted_direction(from_run_config({}), load_registry()) is None, "no other rule trains on the server"
 

@@ -432,7 +432,8 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
                           "nnm+meamed, negated x1", "nnm+meamed, negated x3"]  # fmt: skip
     assert plan["owner e=8"]["keys"] == {"dp": "owner", "dp-clip": 0.3, "dp-epsilon-budget": 8.0, "dp-delta": 1e-5}
     assert plan["nnm+meamed, negated x3"] == {
-        "keys": {"aggregation": "meamed", "pre-aggregation": "nnm", "hostile-owners": 3}, "attack": ("negated", 3)
+        "keys": {"aggregation": "meamed", "pre-aggregation": "nnm", "hostile-owners": 3},
+        "attack": ("negated", 3),
     }
     assert plan["nnm+meamed"]["keys"]["hostile-owners"] == 3, "its cost when nobody attacks, at the largest count"
     assert "owner e=8" not in planned_runs(args, owner_clip=None)
