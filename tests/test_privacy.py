@@ -455,6 +455,16 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
     said = capsys.readouterr().err
     assert f"--seeds-from {earlier} was run with --owners 8, this run with 16; expected the same settings" in said
 
+    from zk0.bench.privacy import main
+
+    for argv in (["--aggregations", "monna"], ["--pretrain-steps", "10"]):
+        with pytest.raises(SystemExit):
+            main([*argv, "--owners", "4", "--output-dir", str(tmp_path / "bench")])
+        assert (
+            "--pretrain-steps and --aggregations monna need public sets; expected --public N" in capsys.readouterr().err
+        )
+    assert "public = 0" in (tmp_path / "bench" / "owners-registry.toml").read_text(), "refused before any recording"
+
 
 def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owners():
     """The benchmark's comparison of the two kinds: record-level noise is a measured share of an

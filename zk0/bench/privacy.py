@@ -19,12 +19,19 @@ every run through the real app (``flwr run``, simulated clients), once per ``--s
   without them (the rule's cost when nobody attacks, its ``hostile-owners`` the largest H;
   ``mean`` without them is the non-private run).
 
+With ``--public N --pretrain-steps S`` (issue 63's question), the registry has N public set-ups
+of the server's own, a policy is pretrained on them for S steps once (``zk0 pretrain``, kept in
+the output folder), every run starts from it, and **public base alone** is rolled out beside them:
+what DP keeps of the owners' gain over the base. ``--aggregations monna`` (the trusted direction)
+needs the public sets too.
+
 Every final model is rolled out on the same ``--sim-episodes`` seeded episodes in the server's
 span of conditions: success with its 95% interval, and McNemar's test against the same seed's
 non-private model. Tables give the mean over seeds and the interval over every seed's episodes.
 Prints the tables and writes JSON (``--json``).
 
-    python -m zk0.bench privacy [--owners 16 | --registry configs/sim-cube-registry.toml] [--demos 10] [--rounds 20] [--local-steps 75]
+    python -m zk0.bench privacy [--owners 16 | --registry configs/sim-cube-registry.toml] [--demos 10]
+        [--public 4 --pretrain-steps 1500] [--rounds 20] [--local-steps 75]
         [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
         [--aggregations mean median trimmed-mean krum multi-krum nnm+meamed ...] [--attacks negated alie ...]
         [--hostile 1 3] [--hostile-factor -2.9]
@@ -57,20 +64,37 @@ from zk0.data.loaders import open_evaluation, open_metadata
 from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.deployment.simulation import run_federation
 from zk0.federation.client import build_client
+from zk0.federation.pretraining import pretrain
 from zk0.federation.privacy import calibrated_noise
 from zk0.learning.policy import build_policy, snapshot
 from zk0.learning.rates import mcnemar, rate_text, wilson
 
 NON_PRIVATE = "non-private"
+PUBLIC_BASE = "public base alone"
 NOISELESS = {"dp-epsilon-budget": 1e30, "dp-noise-multiplier": 1e-12}  # clipping and draws alone
 
 
-def owners_registry(folder: Path, owners: int) -> Path:
-    """A registry of ``owners`` generated sim-cube owners (and their server set)."""
+def owners_registry(folder: Path, owners: int, public: int = 0) -> Path:
+    """A registry of ``owners`` generated sim-cube owners, ``public`` public set-ups and their server set."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "owners-registry.toml"
-    path.write_text(f'[tool.zk0.owners]\ncount = {owners}\nkind = "sim-cube"\n')
+    path.write_text(f'[tool.zk0.owners]\ncount = {owners}\nkind = "sim-cube"\npublic = {public}\n')
     return path
+
+
+def public_base(args, registry: Path, out: Path) -> Path | None:
+    """With ``--pretrain-steps``: the policy pretrained on the registry's public sets (zk0 pretrain),
+    made once and kept in the benchmark's folder; every run starts from it. None without."""
+    if not args.pretrain_steps:
+        return None
+    base = out / f"public-base-{args.model}-{args.pretrain_steps}-steps"
+    if not base.exists():
+        run = from_run_config({"registry": str(registry), "model": args.model, "lr": args.lr})
+        done = pretrain(run, args.pretrain_steps, base)
+        print(
+            f"  public base: {args.pretrain_steps} steps on {done['public-sets']} in {done['wall-s']:.0f} s", flush=True
+        )
+    return base
 
 
 def owner_registry(parser: OneSentenceParser, path: Path):
@@ -112,7 +136,7 @@ def run_config(args, registry: Path, seed: int, keys: dict) -> str:
     settings = {
         "registry": str(registry),
         "server-eval-dataset": load_registry(str(registry)).server.name,
-        "model": args.model,
+        "model": str(args.start) if args.start else args.model,
         "num-server-rounds": args.rounds,
         "local-steps": args.local_steps,
         "lr": args.lr,
@@ -157,7 +181,8 @@ def noise_crossover(args, registry_path: Path, epsilon: float) -> dict:
     and pointing one way), its share is z * sqrt(d) / N, which falls to record-level's at
     N = (z * sqrt(d) / share)^2."""
     registry = load_registry(str(registry_path))
-    keys = {"registry": str(registry_path), "server-eval-dataset": registry.server.name, "model": args.model,
+    keys = {"registry": str(registry_path), "server-eval-dataset": registry.server.name,
+            "model": str(args.start) if args.start else args.model,
             "num-server-rounds": args.rounds, "local-steps": args.local_steps, "lr": args.lr, "dp": "record",
             "dp-delta": args.delta}  # fmt: skip
     updates, noise, rate = {}, 0.0, 0.0
@@ -204,7 +229,7 @@ def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> di
 
 
 SAME = ("owners", "registry", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
-        "aggregations", "attacks", "hostile", "hostile_factor", "sim_episodes")  # fmt: skip
+        "aggregations", "attacks", "hostile", "hostile_factor", "sim_episodes", "public", "pretrain_steps")  # fmt: skip
 
 
 def earlier_seeds(args, parser: OneSentenceParser) -> dict:
@@ -234,6 +259,10 @@ def build_parser() -> OneSentenceParser:
         "hand-written set-ups); --owners is then its number of clients",
     )
     parser.add_argument("--demos", type=positive(int), default=10, help="demonstrations per owner")
+    parser.add_argument("--public", type=int, default=0, help="generated public set-ups (with --owners)")
+    parser.add_argument(
+        "--pretrain-steps", type=int, default=0, help="pretrain on the public sets first; every run starts from it"
+    )
     parser.add_argument("--rounds", type=positive(int), default=20)
     parser.add_argument("--local-steps", type=positive(int), default=75)
     parser.add_argument("--model", choices=OFFLINE_MODELS, default="tiny-128")
@@ -273,7 +302,12 @@ def main(argv: list[str] | None = None) -> int:
         registry = Path(args.registry).resolve()
         args.owners = len(owner_registry(parser, registry).clients)
     else:
-        registry = owners_registry(out, args.owners)
+        registry = owners_registry(out, args.owners, args.public)
+    if not load_registry(str(registry)).public and (args.pretrain_steps or "monna" in args.aggregations):
+        parser.error(
+            "--pretrain-steps and --aggregations monna need public sets; expected --public N (or a --registry with "
+            'role = "public" entries)'
+        )
     if args.owners < 2 * max(args.hostile) + 2:
         parser.error(
             f"--owners got {args.owners}; expected {2 * max(args.hostile) + 2} or more (--hostile "
@@ -292,7 +326,8 @@ def main(argv: list[str] | None = None) -> int:
         for hostile in args.hostile
     }
     started = time.perf_counter()
-    figures: dict = {"settings": vars(args), "runs": {}}
+    args.start = public_base(args, registry, out)
+    figures: dict = {"settings": {k: v for k, v in vars(args).items() if k != "start"}, "runs": {}}
     finals: dict[str, Path] = {}
 
     def train(label: str, seed: int, plan: dict) -> dict | None:
@@ -313,7 +348,9 @@ def main(argv: list[str] | None = None) -> int:
         clip = median_update_norm(first)
         figures["runs"][f"{NON_PRIVATE} seed {seed}"]["median-update-norm"] = clip
         plan = planned_runs(args, None if args.no_owner_level else clip)
-        labels = list(plan)
+        labels = list(plan) + ([PUBLIC_BASE] if args.start else [])
+        if args.start:  # the starting point alone: what the owners add is the runs' gain over it
+            finals[f"{PUBLIC_BASE} seed {seed}"] = args.start
         for label, spec in list(plan.items())[1:]:
             if train(label, seed, spec) is None:
                 return 1
