@@ -437,6 +437,8 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
     }
     assert plan["nnm+meamed"]["keys"]["hostile-owners"] == 3, "its cost when nobody attacks, at the largest count"
     assert "owner e=8" not in planned_runs(args, owner_clip=None)
+    quiet = build_parser().parse_args(["--epsilons", "8", "--aggregations", "mean", "--attacks"])
+    assert list(planned_runs(quiet, owner_clip=None)) == [NON_PRIVATE, "record e=8"], "--attacks alone: none"
 
     outcomes = {NON_PRIVATE: [1, 1, 1, 1, 0, 0, 0, 0], "median": [1, 1, 0, 0, 0, 0, 0, 0]}
     success = {f"{label} seed {seed}": {"outcomes": o, "success-rate": sum(o) / 8} for label, o in outcomes.items()

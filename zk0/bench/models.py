@@ -116,14 +116,15 @@ def sent_bytes(history: dict) -> int:
     return max(int(c["train"]["update-bytes"]) for c in last if "update-bytes" in c.get("train", {}))
 
 
-def generate(registry: Registry, demos: int) -> None:
+def generate(registry: Registry, demos: int, public_demos: int | None = None) -> None:
     """The setting's generated datasets (the non-IID and simulated ones are not in `zk0 assets`);
     all of them, as the server checks every client dataset of the registry before round 1. A
-    simulated client records ``demos`` demonstrations."""
+    simulated client records ``demos`` demonstrations, a simulated public set ``public_demos``
+    (None: its default)."""
     for entry in registry.entries:
         if entry.synthetic:
-            simulated = entry.name in SIM_SPECS and entry.role == "client"
-            ensure_dataset(entry.name, episodes=demos if simulated else None)
+            episodes = {"client": demos, "public": public_demos}.get(entry.role) if entry.name in SIM_SPECS else None
+            ensure_dataset(entry.name, episodes=episodes)
 
 
 def from_the_start(sessions: list[ClientSession]) -> None:

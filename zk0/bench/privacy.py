@@ -31,7 +31,7 @@ non-private model. Tables give the mean over seeds and the interval over every s
 Prints the tables and writes JSON (``--json``).
 
     python -m zk0.bench privacy [--owners 16 | --registry configs/sim-cube-registry.toml] [--demos 10]
-        [--public 4 --pretrain-steps 1500] [--rounds 20] [--local-steps 75]
+        [--public 4 --public-demos 10 --pretrain-steps 1500] [--rounds 20] [--local-steps 75]
         [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
         [--aggregations mean median trimmed-mean krum multi-krum nnm+meamed ...] [--attacks negated alie ...]
         [--hostile 1 3] [--hostile-factor -2.9]
@@ -229,7 +229,8 @@ def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> di
 
 
 SAME = ("owners", "registry", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
-        "aggregations", "attacks", "hostile", "hostile_factor", "sim_episodes", "public", "pretrain_steps")  # fmt: skip
+        "aggregations", "attacks", "hostile", "hostile_factor", "sim_episodes", "public", "public_demos",
+        "pretrain_steps")  # fmt: skip
 
 
 def earlier_seeds(args, parser: OneSentenceParser) -> dict:
@@ -260,6 +261,7 @@ def build_parser() -> OneSentenceParser:
     )
     parser.add_argument("--demos", type=positive(int), default=10, help="demonstrations per owner")
     parser.add_argument("--public", type=int, default=0, help="generated public set-ups (with --owners)")
+    parser.add_argument("--public-demos", type=positive(int), default=10, help="demonstrations per public set")
     parser.add_argument(
         "--pretrain-steps", type=int, default=0, help="pretrain on the public sets first; every run starts from it"
     )
@@ -274,7 +276,9 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument(
         "--aggregations", nargs="*", choices=RULES, default=["mean", "median", "trimmed-mean", "krum", "multi-krum"]
     )
-    parser.add_argument("--attacks", nargs="+", choices=ATTACKS, default=["negated"], help="zk0.bench.attacks")
+    parser.add_argument(
+        "--attacks", nargs="*", choices=ATTACKS, default=["negated"], help="zk0.bench.attacks; none: no hostile runs"
+    )
     parser.add_argument("--hostile", type=positive(int), nargs="+", default=[1], help="hostile owners, the last ones")
     parser.add_argument("--hostile-factor", type=float, default=-2.9, help="negated: the hostile update's factor")
     parser.add_argument("--sim-episodes", type=positive(int), default=100)
@@ -314,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{max(args.hostile)} owners, more than twice as many to outvote them, and one a round may miss)"
         )
     with native_output_to(out / "assets.log"):
-        generate(load_registry(str(registry)), args.demos)
+        generate(load_registry(str(registry)), args.demos, args.public_demos)
     apps = {
         (attack, hostile): attacked_app(
             out / f"attacked-app-{attack}-x{hostile}",
