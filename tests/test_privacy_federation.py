@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+import tomllib
+from pathlib import Path
 
 import dp_accounting
 import pytest
 
+from zk0.data.registry import PROJECT_ROOT
 from zk0.deployment.simulation import cpu_federation, flwr_run
 
 pytestmark = pytest.mark.e2e
@@ -75,34 +78,17 @@ def test_record_level_dp_says_each_owners_epsilon(flower_env, tmp_path):
     assert "Privacy spent by synth-so100-stacking's demonstrations: epsilon" in client_log
 
 
-TRUSTED_REGISTRY = """
-[tool.zk0.datasets.synth-so100-pickplace]
-repo_id = "zk0/synth_so100_pickplace"
-synthetic = true
-cameras = { front = "camera1", wrist = "camera2" }
-
-[tool.zk0.datasets.synth-so100-stacking]
-repo_id = "zk0/synth_so100_stacking"
-synthetic = true
-cameras = { laptop = "camera1", phone = "camera2" }
-
-[tool.zk0.datasets.synth-so101-sorting]
-repo_id = "zk0/synth_so101_sorting"
-synthetic = true
-cameras = { top = "camera1", wrist = "camera2" }
-
-[tool.zk0.datasets.synth-so101-reach]
-repo_id = "zk0/synth_so101_reach"
-synthetic = true
-role = "public"
-cameras = { front = "camera1", side = "camera2" }
-
-[tool.zk0.datasets.synth-so100-eval]
-repo_id = "zk0/synth_so100_eval"
-synthetic = true
-role = "server"
-cameras = { front = "camera1", wrist = "camera2" }
-"""
+def with_public_set(path: Path, public: str) -> Path:
+    """The project's registry with its client set ``public`` made public (the server's to train on)."""
+    tables = tomllib.loads((PROJECT_ROOT / "pyproject.toml").read_text())["tool"]["zk0"]["datasets"]
+    lines = []
+    for name, table in tables.items():
+        role = "public" if name == public else table.get("role", "client")
+        cameras = ", ".join(f'{source} = "{target}"' for source, target in table["cameras"].items())
+        lines += [f"[tool.zk0.datasets.{name}]", f'repo_id = "{table["repo_id"]}"', "synthetic = true"]
+        lines += [f'role = "{role}"', f"cameras = {{ {cameras} }}", ""]
+    path.write_text("\n".join(lines))
+    return path
 
 
 def test_the_trusted_direction_leaves_a_hostile_owner_out_through_flwr_run(flower_env, tmp_path):
@@ -113,8 +99,7 @@ def test_the_trusted_direction_leaves_a_hostile_owner_out_through_flwr_run(flowe
     from its own, the hostile one, naming it; the global model still learns."""
     from zk0.bench.attacks import attacked_app
 
-    registry = tmp_path / "registry.toml"
-    registry.write_text(TRUSTED_REGISTRY)
+    registry = with_public_set(tmp_path / "registry.toml", "synth-so101-reach")
     out = tmp_path / "outputs"
     app = attacked_app(tmp_path / "app", "sign-flipping", [2])
     config = (
