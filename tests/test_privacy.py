@@ -171,6 +171,10 @@ def test_a_resumed_accountant_continues_and_a_spent_budget_is_one_sentence():
         ({"pre-aggregation": "bucketing"}, "Run-config key 'pre-aggregation' got 'bucketing'; expected one of"),
         ({"pre-aggregation": "nnm", "aggregation": "krum", "min-train-clients": 4}, "cannot go before Flower's"),
         (
+            {"pre-aggregation": "nnm", "aggregation": "monna", "min-train-clients": 3},
+            "'pre-aggregation' = 'nnm' cannot go before aggregation='monna': it would mix the server's trusted",
+        ),
+        (
             {"aggregation": "mda", "hostile-owners": 2, "min-train-clients": 4},
             "Run-config key 'min-train-clients' = 4 is too few for mda to outvote hostile-owners=2; expected "
             "min-train-clients of at least 5",

@@ -376,6 +376,11 @@ def _check_privacy(cfg: RunConfig) -> None:
             f"aggregation={cfg.aggregation!r}, which takes the owners' updates as they came; expected 'mean' or one "
             f"of ByzFL's rules {list(BYZFL_RULES)}, or pre-aggregation='none'."
         )
+    if cfg.pre_aggregation != "none" and cfg.aggregation == "monna":
+        raise ConfigError(
+            f"Run-config key 'pre-aggregation' = {cfg.pre_aggregation!r} cannot go before aggregation='monna': it "
+            "would mix the server's trusted update with the owners'; expected pre-aggregation='none'."
+        )
     _check_outvoting(cfg)
     if cfg.dp == "owner" and (cfg.aggregation != "mean" or cfg.pre_aggregation != "none"):
         raise ConfigError(
