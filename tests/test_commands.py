@@ -17,7 +17,7 @@ def exit_code(call, argv: list[str]) -> int:
         return done.code
 
 
-COMMANDS = ["assets", "check", "certs", "superlink", "supernode", "export"]
+COMMANDS = ["assets", "check", "pretrain", "certs", "superlink", "supernode", "export"]
 BENCHES = (
     "learning, study, robust, robustness, exchange, step, round, memory, deployment, gpu, sim, inputs, sim-learning, "
     "hetero, scale, owners, soak, privacy, secagg, container, policies"

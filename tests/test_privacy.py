@@ -484,7 +484,7 @@ def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owne
     from zk0.bench.privacy import noise_crossover
     from zk0.data.registry import PROJECT_ROOT
 
-    args = argparse.Namespace(model="tiny", rounds=4, local_steps=3, lr=1e-3, delta=1e-5)
+    args = argparse.Namespace(model="tiny", start=None, rounds=4, local_steps=3, lr=1e-3, delta=1e-5)
     found = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
     assert 0.0 < found["record-noise-share"] < 100.0
     rate = found["sample-rate"]  # the run's batch (8) over the owner's training demonstrations
