@@ -22,7 +22,7 @@ from zk0.artifacts.run_folder import save_policy_folder
 from zk0.common.errors import Zk0Error
 from zk0.config import RunConfig
 from zk0.data.registry import Registry, load_registry
-from zk0.federation.client import build_client
+from zk0.federation.client import ClientSession, build_client
 from zk0.federation.stats import with_merged_stats
 from zk0.learning.training import PooledTrainer
 
@@ -38,6 +38,13 @@ def public_sets(run: RunConfig) -> Registry:
     return registry
 
 
+def public_trainer(run: RunConfig, registry: Registry) -> tuple[list[ClientSession], PooledTrainer]:
+    """Each public set opened as an owner's would be, and one trainer over them all: the first
+    set's policy, a batch from each set in turn, each prepared with its own processors."""
+    sessions = [build_client(run, e, registry.model_cameras(), index=i) for i, e in enumerate(registry.public)]
+    return sessions, PooledTrainer.over(sessions[0].bundle, [s.trainer for s in sessions], run)
+
+
 def pretrain(run: RunConfig, steps: int, out: Path) -> dict:
     """Train ``run``'s policy for ``steps`` steps on the registry's public sets and write it to ``out``
     (a new folder); what it trained on and how long it took."""
@@ -45,12 +52,8 @@ def pretrain(run: RunConfig, steps: int, out: Path) -> dict:
     if out.exists():
         raise Zk0Error(f"--out {str(out)!r} exists; expected a new folder, so that no model is overwritten.")
     out.parent.mkdir(parents=True, exist_ok=True)
-    pooled = replace(run, local_steps=steps)
-    sessions = [
-        build_client(pooled, entry, registry.model_cameras(), index=i) for i, entry in enumerate(registry.public)
-    ]
-    bundle = sessions[0].bundle
-    trainer = PooledTrainer.over(bundle, [s.trainer for s in sessions], pooled)
+    sessions, trainer = public_trainer(replace(run, local_steps=steps), registry)
+    bundle = trainer.bundle
     started = time.perf_counter()
     metrics = trainer.fit(steps, mu=0.0, global_step=0)
     stats = {s.split.entry.name: s.bundle.stats for s in sessions}

@@ -21,19 +21,16 @@ from loguru import logger
 
 from zk0.config import RunConfig
 from zk0.data.registry import Registry
-from zk0.federation.client import build_client
+from zk0.federation.pretraining import public_trainer
 from zk0.learning.policy import set_trainable, snapshot
-from zk0.learning.training import PooledTrainer
 
 
 class TrustedDirection:
     """The server's update on the public sets from a round's global model (``update``)."""
 
     def __init__(self, run: RunConfig, registry: Registry) -> None:
-        sessions = [build_client(run, e, registry.model_cameras(), index=i) for i, e in enumerate(registry.public)]
-        self.sources = [s.trainer for s in sessions]
-        self.bundle = sessions[0].bundle
-        self.trainer = PooledTrainer.over(self.bundle, self.sources, run)
+        _, self.trainer = public_trainer(run, registry)
+        self.sources, self.bundle = self.trainer.sources, self.trainer.bundle
         self.steps, self.seed = run.local_steps, run.seed
         logger.info("Trusted direction: {} local steps a round on {}", self.steps, [e.name for e in registry.public])
 
