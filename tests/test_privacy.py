@@ -463,6 +463,9 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
 
     from zk0.bench.privacy import main
 
+    with pytest.raises(SystemExit):
+        main(["--public", "-1", "--output-dir", str(tmp_path / "bench")])
+    assert "--public got -1; expected 0 (none) or more" in capsys.readouterr().err
     for argv in (["--aggregations", "monna"], ["--pretrain-steps", "10"]):
         with pytest.raises(SystemExit):
             main([*argv, "--owners", "4", "--output-dir", str(tmp_path / "bench")])

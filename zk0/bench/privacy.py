@@ -132,11 +132,16 @@ def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
     return runs
 
 
+def starting_model(args) -> str:
+    """What every run starts from: the public base (``args.start``, set by ``main``), else ``--model``."""
+    return str(args.start) if args.start else args.model
+
+
 def run_config(args, registry: Path, seed: int, keys: dict) -> str:
     settings = {
         "registry": str(registry),
         "server-eval-dataset": load_registry(str(registry)).server.name,
-        "model": str(args.start) if args.start else args.model,
+        "model": starting_model(args),
         "num-server-rounds": args.rounds,
         "local-steps": args.local_steps,
         "lr": args.lr,
@@ -182,7 +187,7 @@ def noise_crossover(args, registry_path: Path, epsilon: float) -> dict:
     N = (z * sqrt(d) / share)^2."""
     registry = load_registry(str(registry_path))
     keys = {"registry": str(registry_path), "server-eval-dataset": registry.server.name,
-            "model": str(args.start) if args.start else args.model,
+            "model": starting_model(args),
             "num-server-rounds": args.rounds, "local-steps": args.local_steps, "lr": args.lr, "dp": "record",
             "dp-delta": args.delta}  # fmt: skip
     updates, noise, rate = {}, 0.0, 0.0
@@ -301,6 +306,9 @@ def main(argv: list[str] | None = None) -> int:
         )
     if len(set(args.seeds)) != len(args.seeds):
         parser.error(f"--seeds got {args.seeds}; expected different seeds")
+    for flag, value in (("--public", args.public), ("--pretrain-steps", args.pretrain_steps)):
+        if value < 0:
+            parser.error(f"{flag} got {value}; expected 0 (none) or more")
     out = Path(args.output_dir).resolve()
     if args.registry:
         registry = Path(args.registry).resolve()
