@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import re
+
 import dp_accounting
 import numpy as np
 import pytest
@@ -361,9 +363,58 @@ def private_client(registry):
     from zk0.federation.client import build_client
 
     run = from_run_config(
-        {"batch-size": 4, "lr": 1e-3, "dp": "record", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 11.0}
+        {"dp-batch": 4, "lr": 1e-3, "dp": "record", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 11.0}
     )
     return build_client(run, registry.clients[0], registry.model_cameras())
+
+
+@pytest.mark.parametrize("part", ["projections", "head"])
+def test_the_small_data_recipe_steps_every_demonstration_once_and_trains_only_its_part(registry, part):
+    """``dp-batch = 0`` draws every demonstration each step (q = 1 in the accountant), ``dp-frames``
+    frames of each make one clipped gradient per demonstration, and ``dp-train`` moves its part of
+    SmolVLA alone: the rest keeps the global model, and is trainable again after the step (a
+    personal fine-tune trains it)."""
+    from zk0.config import DP_PARTS
+    from zk0.federation.client import build_client
+    from zk0.learning.policy import snapshot
+    from zk0.learning.training import metrics_tracker
+
+    run = from_run_config({"dp": "record", "dp-batch": 0, "dp-frames": 3, "dp-train": part,
+                           "dp-noise-multiplier": 1.0, "lr": 1e-3})  # fmt: skip
+    client = build_client(run, registry.clients[0], registry.model_cameras())
+    trainer = client.trainer
+    demonstrations = len(trainer.split.train.episodes)
+    assert trainer.sample_rate == 1.0
+    batch = trainer._next_batch()
+    episodes = batch["episode_index"].tolist()
+    assert len(episodes) == 3 * demonstrations
+    assert [episodes[i : i + 3] for i in range(0, len(episodes), 3)] == [[e] * 3 for e in trainer.split.train.episodes]
+    before = snapshot(client.bundle)
+    assert trainer._step(metrics_tracker(4, 100, 10), trainer._prepare(batch)) == 3 * demonstrations
+    after = snapshot(client.bundle)
+    moved = {name for name in before if not torch.equal(before[name], after[name])}
+    private = {name for name in before if set(name.split(".")) & set(DP_PARTS[part])}
+    assert moved == private and private, f"the {part} move, the rest keeps the global model"
+    assert all(p.requires_grad for n, p in client.bundle.policy.named_parameters() if n in before)
+    metrics = trainer.fit(1, 0.0, 1)
+    assert metrics["local-steps"] == 1 and metrics["record-epsilon"] > 0
+
+
+@pytest.mark.parametrize(
+    ("keys", "said"),
+    [
+        (
+            {"dp-train": "expert"},
+            "Run-config key 'dp-train' got 'expert'; expected one of ['all', 'projections', 'head'].",
+        ),
+        ({"dp-train": "projections", "policy": "act"}, "names SmolVLA's modules, and policy='act' has none of them"),
+        ({"dp-frames": 0}, "dp-frames"),
+        ({"dp-batch": -1}, "dp-batch"),
+    ],
+)
+def test_a_record_recipe_that_cannot_hold_is_refused_in_one_sentence(keys, said):
+    with pytest.raises(ConfigError, match=re.escape(said)):
+        from_run_config({"dp": "record", **keys})
 
 
 def test_each_step_draws_each_demonstration_with_probability_q_and_one_frame_of_it(private_client):
@@ -443,6 +494,13 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
     assert "owner e=8" not in planned_runs(args, owner_clip=None)
     quiet = build_parser().parse_args(["--epsilons", "8", "--aggregations", "mean", "--attacks"])
     assert list(planned_runs(quiet, owner_clip=None)) == [NON_PRIVATE, "record e=8"], "--attacks alone: none"
+    compared = build_parser().parse_args(["--epsilons", "8", "--aggregations", "mean", "--attacks", "--recipes",
+                                          "full:dp-batch=0 local-steps=3",
+                                          "head:dp-train='head'"])  # fmt: skip
+    plan = planned_runs(compared, owner_clip=None)
+    assert list(plan) == [NON_PRIVATE, "record e=8 full", "record e=8 head"]
+    assert plan["record e=8 full"]["keys"] == {"dp": "record", "dp-epsilon-budget": 8.0, "dp-delta": 1e-5,
+                                               "dp-batch": 0, "local-steps": 3}  # fmt: skip
 
     outcomes = {NON_PRIVATE: [1, 1, 1, 1, 0, 0, 0, 0], "median": [1, 1, 0, 0, 0, 0, 0, 0]}
     success = {f"{label} seed {seed}": {"outcomes": o, "success-rate": sum(o) / 8} for label, o in outcomes.items()
@@ -466,6 +524,16 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
     with pytest.raises(SystemExit):
         main(["--public", "-1", "--output-dir", str(tmp_path / "bench")])
     assert "--public got -1; expected 0 (none) or more" in capsys.readouterr().err
+    for recipes, said in (
+        (["dp-batch=0"], "--recipes got 'dp-batch=0'; expected NAME:KEYS with a name of its own"),
+        (["a:dp-batch=0", "a:dp-frames=2"], "--recipes got 'a:dp-frames=2'; expected NAME:KEYS with a name of its own"),
+        (["x:dp-train='expert'"], "--recipes x: Run-config key 'dp-train' got 'expert'; expected one of"),
+        (["lora:peft='lora'"], "--recipes lora: Run-config key 'peft' = 'lora' adapts a pretrained SmolVLA"),
+    ):
+        with pytest.raises(SystemExit):
+            main(["--recipes", *recipes, "--output-dir", str(tmp_path / "bench")])
+        assert said in capsys.readouterr().err
+    assert not (tmp_path / "bench").exists(), "refused before anything is written"
     for argv in (["--aggregations", "monna"], ["--pretrain-steps", "10"]):
         with pytest.raises(SystemExit):
             main([*argv, "--owners", "4", "--output-dir", str(tmp_path / "bench")])

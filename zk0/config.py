@@ -44,6 +44,10 @@ BYZFL_RULES = ("geometric-median", "centered-clipping", "mda", "meamed", "caf", 
 AGGREGATIONS = ("mean", *FLOWER_RULES, *BYZFL_RULES)
 COUNTING_RULES = ("mda", "meamed", "caf", "smea", "monna")  # ByzFL's rules that take hostile-owners (as f): n > 2 f
 PRE_AGGREGATIONS = ("none", "nnm", "arc")
+# dp-train -> the SmolVLA modules an owner trains under dp = "record" (None: every trainable parameter;
+# head: the action expert's output projection, the last layer, Mehta et al. 2023);
+# the rest stay at the global model, so the noise spreads over fewer coordinates (docs/privacy.md)
+DP_PARTS = {"all": None, "projections": tuple(LORA_FULL_MODULES.split(",")), "head": ("action_out_proj",)}
 
 
 class ConfigError(Zk0Error):
@@ -118,6 +122,9 @@ class RunConfig:
     )
     dp_delta: float = 1e-5  # the delta of (epsilon, delta)-DP
     dp_epsilon_budget: float = 8.0  # the run stops before a release would spend more epsilon than this
+    dp_batch: int = 8  # record: demonstrations each private step draws, in expectation; 0 = every one (q = 1)
+    dp_frames: int = 1  # record: frames of each drawn demonstration averaged into its one clipped gradient
+    dp_train: str = "all"  # record: what the owner trains privately (DP_PARTS); the rest keeps the global model
     aggregation: str = "mean"  # mean (weighted), or a robust rule of Flower's or ByzFL's (zk0.federation.robust)
     pre_aggregation: str = "none"  # none | nnm | arc: ByzFL's pre-aggregator before ByzFL's rule or the mean
     trim_fraction: float = 0.2  # trimmed-mean: the share of the largest and of the smallest values cut per weight
@@ -199,6 +206,8 @@ _RANGES: dict[str, tuple[float, float | None, bool]] = {
     "dp_noise_multiplier": (0, None, False),
     "dp_delta": (0, 1, True),
     "dp_epsilon_budget": (0, None, True),
+    "dp_batch": (0, None, False),
+    "dp_frames": (1, None, False),
     "trim_fraction": (0, None, False),
     "hostile_owners": (0, None, False),
 }
@@ -382,6 +391,13 @@ def _check_privacy(cfg: RunConfig) -> None:
             "would mix the server's trusted update with the owners'; expected pre-aggregation='none'."
         )
     _check_outvoting(cfg)
+    if cfg.dp_train not in DP_PARTS:
+        raise ConfigError(f"Run-config key 'dp-train' got {cfg.dp_train!r}; expected one of {list(DP_PARTS)}.")
+    if cfg.dp_train != "all" and cfg.policy != "smolvla":
+        raise ConfigError(
+            f"Run-config key 'dp-train' = {cfg.dp_train!r} names SmolVLA's modules, and policy={cfg.policy!r} has "
+            "none of them; expected dp-train='all'."
+        )
     if cfg.dp == "owner" and (cfg.aggregation != "mean" or cfg.pre_aggregation != "none"):
         raise ConfigError(
             f"Run-config key 'aggregation' = {cfg.aggregation!r} (pre-aggregation={cfg.pre_aggregation!r}) cannot go "

@@ -6,7 +6,9 @@ every run through the real app (``flwr run``, simulated clients), once per ``--s
 
 - **non-private**: ``dp = "off"``, the weighted mean;
 - **record e=E** for each ``--epsilons`` E: ``dp = "record"``, each owner's DP-SGD noise calibrated
-  by Opacus so that the run spends E (at ``--delta``) of each owner's demonstrations;
+  by Opacus so that the run spends E (at ``--delta``) of each owner's demonstrations; with
+  ``--recipes NAME:KEYS ...``, **record e=E NAME** for each recipe instead, its run-config keys
+  (``dp-batch``, ``dp-frames``, ``dp-train``, ``local-steps``, ``lr``, ...) over the run's;
 - **owner e=E**: ``dp = "owner"``, Flower's central DP calibrated by dp-accounting so that the
   run's rounds spend E, each update clipped to the median update norm the non-private run's
   first round measured (the usual choice: about half the updates are clipped);
@@ -32,7 +34,7 @@ Prints the tables and writes JSON (``--json``).
 
     python -m zk0.bench privacy [--owners 16 | --registry configs/sim-cube-registry.toml] [--demos 10]
         [--public 4 --public-demos 10 --pretrain-steps 1500] [--rounds 20] [--local-steps 75]
-        [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--delta 1e-5] [--seeds 42 43]
+        [--model tiny-128] [--lr 1e-3] [--epsilons 8 2] [--recipes NAME:KEYS ...] [--delta 1e-5] [--seeds 42 43]
         [--aggregations mean median trimmed-mean krum multi-krum nnm+meamed ...] [--attacks negated alie ...]
         [--hostile 1 3] [--hostile-factor -2.9]
         [--sim-episodes 100] [--output-dir outputs/bench-privacy] [--json FILE] [--seeds-from JSON]
@@ -51,6 +53,7 @@ import time
 from pathlib import Path
 
 import torch
+from flwr.common.config import parse_config_args
 
 from zk0.artifacts.logs import native_output_to
 from zk0.artifacts.resume import checkpoint_trainable
@@ -82,12 +85,17 @@ def owners_registry(folder: Path, owners: int, public: int = 0) -> Path:
     return path
 
 
+def base_folder(args, out: Path) -> Path:
+    """Where the public base of ``--model`` pretrained ``--pretrain-steps`` steps is kept."""
+    return out / f"public-base-{args.model}-{args.pretrain_steps}-steps"
+
+
 def public_base(args, registry: Path, out: Path) -> Path | None:
     """With ``--pretrain-steps``: the policy pretrained on the registry's public sets (zk0 pretrain),
     made once and kept in the benchmark's folder; every run starts from it. None without."""
     if not args.pretrain_steps:
         return None
-    base = out / f"public-base-{args.model}-{args.pretrain_steps}-steps"
+    base = base_folder(args, out)
     if not base.exists():
         run = from_run_config({"registry": str(registry), "model": args.model, "lr": args.lr})
         done = pretrain(run, args.pretrain_steps, base)
@@ -109,6 +117,16 @@ def owner_registry(parser: OneSentenceParser, path: Path):
 RULES = (*AGGREGATIONS, *(f"{pre}+{rule}" for pre in PRE_AGGREGATIONS[1:] for rule in ("mean", *BYZFL_RULES)))
 
 
+def recipes(args) -> dict[str, dict]:
+    """``--recipes``' record-level recipes, name -> the run-config keys it changes (``{"": {}}``:
+    the defaults alone)."""
+    found = {}
+    for recipe in args.recipes or [":"]:
+        name, _, keys = recipe.partition(":")
+        found[name] = parse_config_args([keys]) if keys.strip() else {}
+    return found
+
+
 def rule_keys(rule: str, hostile: int) -> dict:
     """The run-config keys of ``--aggregations``' ``rule`` outvoting ``hostile`` owners."""
     pre, _, name = rule.rpartition("+")
@@ -120,7 +138,9 @@ def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
     runs: dict[str, dict] = {NON_PRIVATE: {"keys": {}, "attack": None}}
     for epsilon in args.epsilons:
         privacy = {"dp-epsilon-budget": epsilon, "dp-delta": args.delta}
-        runs[f"record e={epsilon:g}"] = {"keys": {"dp": "record", **privacy}, "attack": None}
+        for name, keys in recipes(args).items():
+            label = f"record e={epsilon:g}" + (f" {name}" if name else "")
+            runs[label] = {"keys": {"dp": "record", **privacy, **keys}, "attack": None}
         if owner_clip is not None:
             runs[f"owner e={epsilon:g}"] = {"keys": {"dp": "owner", "dp-clip": owner_clip, **privacy}, "attack": None}
     for rule in args.aggregations:
@@ -174,7 +194,7 @@ def rollouts(args, registry_path: Path, finals: dict[str, Path]) -> dict[str, di
     return {name: row[SERVER] for name, row in rolled.items()}
 
 
-def noise_crossover(args, registry_path: Path, epsilon: float) -> dict:
+def noise_crossover(args, registry_path: Path, epsilon: float, recipe: dict | None = None) -> dict:
     """How many owners owner-level DP needs before the noise on the released average is no larger
     than record-level DP's, both spending ``epsilon`` over the run.
 
@@ -184,17 +204,18 @@ def noise_crossover(args, registry_path: Path, epsilon: float) -> dict:
     owners, independent noises shrink as 1/sqrt(N). Owner-level: noise of std z * clip on each of
     the d weights of the sum, divided by N. Taken at its most favourable (every update at the clip
     and pointing one way), its share is z * sqrt(d) / N, which falls to record-level's at
-    N = (z * sqrt(d) / share)^2."""
+    N = (z * sqrt(d) / share)^2. With ``recipe`` (a ``--recipes`` item's keys), that recipe's noise."""
     registry = load_registry(str(registry_path))
     keys = {"registry": str(registry_path), "server-eval-dataset": registry.server.name,
             "model": starting_model(args),
             "num-server-rounds": args.rounds, "local-steps": args.local_steps, "lr": args.lr, "dp": "record",
-            "dp-delta": args.delta}  # fmt: skip
+            "dp-delta": args.delta, **(recipe or {})}  # fmt: skip
     updates, noise, rate = {}, 0.0, 0.0
     for label, extra in (("noisy", {"dp-epsilon-budget": epsilon}), ("clean", NOISELESS)):
-        session = build_client(from_run_config({**keys, **extra}), registry.clients[0], registry.model_cameras())
+        run = from_run_config({**keys, **extra})
+        session = build_client(run, registry.clients[0], registry.model_cameras())
         start = snapshot(session.bundle)
-        session.trainer.fit(args.local_steps, 0.0, global_step=0)
+        session.trainer.fit(run.local_steps, 0.0, global_step=0)
         end = snapshot(session.bundle)
         updates[label] = torch.cat([(end[name] - start[name]).flatten() for name in start])
         noise, rate = noise or session.trainer.noise_multiplier, session.trainer.sample_rate
@@ -210,6 +231,24 @@ def noise_crossover(args, registry_path: Path, epsilon: float) -> dict:
         "owner-noise-share-one-owner": owner_share_one,
         "owners-to-match": math.ceil((owner_share_one / record_share) ** 2),
     }
+
+
+def check_recipes(args, parser: OneSentenceParser, out: Path) -> None:
+    """Each ``--recipes`` item named once, its keys read and valid under ``dp = "record"`` for the
+    model the runs start from (the public base, if any), before any run."""
+    start = str(base_folder(args, out)) if args.pretrain_steps else args.model
+    seen = set()
+    for recipe in args.recipes:
+        name = recipe.partition(":")[0]
+        if ":" not in recipe or not name or name in seen:
+            parser.error(
+                f"--recipes got {recipe!r}; expected NAME:KEYS with a name of its own, such as 'full:dp-batch=0'"
+            )
+        seen.add(name)
+        try:
+            from_run_config({"dp": "record", "model": start, **parse_config_args([recipe.partition(":")[2]])})
+        except Exception as err:  # flwr's parse errors, zk0's ConfigError: one sentence either way
+            parser.error(f"--recipes {name}: {str(getattr(err, 'message', err)).rstrip('.')}")
 
 
 def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> dict[str, dict]:
@@ -233,7 +272,7 @@ def summary(success: dict[str, dict], seeds: list[int], labels: list[str]) -> di
     return table
 
 
-SAME = ("owners", "registry", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "delta", "no_owner_level",
+SAME = ("owners", "registry", "demos", "rounds", "local_steps", "model", "lr", "epsilons", "recipes", "delta", "no_owner_level",
         "aggregations", "attacks", "hostile", "hostile_factor", "sim_episodes", "public", "public_demos",
         "pretrain_steps")  # fmt: skip
 
@@ -275,6 +314,12 @@ def build_parser() -> OneSentenceParser:
     parser.add_argument("--model", choices=OFFLINE_MODELS, default="tiny-128")
     parser.add_argument("--lr", type=positive(float), default=1e-3)
     parser.add_argument("--epsilons", type=positive(float), nargs="*", default=[8.0, 2.0])
+    parser.add_argument(
+        "--recipes",
+        nargs="*",
+        default=[],
+        help='record-level recipes to compare, each NAME:KEYS (run-config keys, e.g. "full:dp-batch=0 local-steps=3")',
+    )
     parser.add_argument("--delta", type=positive(float), default=1e-5)
     parser.add_argument("--no-owner-level", action="store_true", help="skip the owner-level DP runs")
     parser.add_argument("--seeds", type=int, nargs="+", default=[42, 43])
@@ -310,6 +355,7 @@ def main(argv: list[str] | None = None) -> int:
         if value < 0:
             parser.error(f"{flag} got {value}; expected 0 (none) or more")
     out = Path(args.output_dir).resolve()
+    check_recipes(args, parser, out)
     if args.registry:
         registry = Path(args.registry).resolve()
         args.owners = len(owner_registry(parser, registry).clients)
@@ -367,7 +413,12 @@ def main(argv: list[str] | None = None) -> int:
             if train(label, seed, spec) is None:
                 return 1
     figures["training-wall-s"] = time.perf_counter() - started
-    figures["noise-crossover"] = {f"e={e:g}": noise_crossover(args, registry, e) for e in args.epsilons}
+    figures["noise-crossover"] = {
+        f"e={e:g}" + (f" {name}" if name else ""): noise_crossover(args, registry, e, keys)
+        for e in args.epsilons
+        for name, keys in recipes(args).items()
+        if "dp-noise-multiplier" not in keys  # a recipe with its own noise (a noiseless ceiling) has no crossover
+    }
     figures["success"] = rollouts(args, registry, finals)
     seeds = list(args.seeds)
     if args.seeds_from:

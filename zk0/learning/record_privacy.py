@@ -6,14 +6,17 @@ update leaves it. The unit protected is a demonstration (an episode), not a fram
 episode show the same room, table and people, so a guarantee per frame would say little. Each
 local step therefore:
 
-- samples demonstrations, each independently with probability ``q = batch-size / training
-  demonstrations`` (Opacus's ``UniformWithReplacementSampler``: the Poisson sampling its
-  accountant assumes), and one frame uniformly from each one drawn, so a demonstration adds
-  at most one sample to a step;
-- computes each sample's gradient with a forward and backward of its own through SmolVLA's
-  ``forward`` (the loss ``update_policy`` uses). Opacus's hooks cannot follow SmolVLA's in-place
-  residual additions and ``torch.func.vmap`` stops at its ``.item()`` calls, so the batch of
-  per-sample gradients is built one sample at a time: it costs a forward per sample, not per batch;
+- samples demonstrations, each independently with probability ``q = dp-batch / training
+  demonstrations`` (every one with ``dp-batch = 0``; Opacus's ``UniformWithReplacementSampler``:
+  the Poisson sampling its accountant assumes), and ``dp-frames`` frames uniformly from each one
+  drawn, so a demonstration adds exactly one gradient to a step: the mean loss of its frames;
+- computes each demonstration's gradient with a forward and backward of its own (a batch of its
+  frames) through the policy's ``forward`` (the loss ``update_policy`` uses). Opacus's hooks
+  cannot follow SmolVLA's in-place residual additions and ``torch.func.vmap`` stops at its
+  ``.item()`` calls, so the per-demonstration gradients are built one at a time;
+- with ``dp-train = "projections"`` only SmolVLA's projections (state, action and time) take
+  these steps and the rest of the trainable weights keep the global model's values: the noise
+  a step adds grows with the square root of the weights it touches (docs/privacy.md);
 - hands those gradients to Opacus's ``DPOptimizer`` around the trainer's own AdamW: it clips each
   to ``dp-clip``, adds Gaussian noise of ``dp-noise-multiplier x dp-clip`` to their sum, divides
   by the expected batch size and steps; lerobot's scheduler follows as in ``update_policy``;
@@ -32,6 +35,7 @@ from __future__ import annotations
 
 import time
 import zlib
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -45,6 +49,7 @@ from opacus.utils.uniform_sampler import UniformWithReplacementSampler
 from torch.utils.data import default_collate
 
 from zk0.common.errors import Zk0Error
+from zk0.config import DP_PARTS
 from zk0.learning.training import LocalTrainer
 
 
@@ -63,12 +68,25 @@ def demonstration_frames(dataset) -> list[np.ndarray]:
     return frames
 
 
-def one_sample(batch: dict, i: int, size: int) -> dict:
-    """Sample ``i`` of a preprocessed batch of ``size``, as a batch of one."""
+def demonstration_part(batch: dict, i: int, frames: int, size: int) -> dict:
+    """The ``frames`` samples of demonstration ``i`` in a preprocessed batch of ``size`` samples."""
     return {
-        key: value[i : i + 1] if isinstance(value, torch.Tensor | list) and len(value) == size else value
+        key: value[i * frames : (i + 1) * frames]
+        if isinstance(value, torch.Tensor | list) and len(value) == size
+        else value
         for key, value in batch.items()
     }
+
+
+def private_part(policy: torch.nn.Module, part: str) -> list[str]:
+    """The trainable parameters ``dp-train = part`` trains privately: all, or those inside the
+    modules ``DP_PARTS`` names."""
+    modules = DP_PARTS[part]
+    return [
+        name
+        for name, p in policy.named_parameters()
+        if p.requires_grad and (modules is None or set(name.split(".")) & set(modules))
+    ]
 
 
 @dataclass
@@ -78,13 +96,19 @@ class PrivateTrainer(LocalTrainer):
     sample_rate: float = field(init=False)
     noise_multiplier: float = field(init=False)
     private_optimizer: DPOptimizer = field(init=False)
+    private: list[str] = field(init=False)  # the parameters the steps train (dp-train)
     _frames: list[np.ndarray] = field(init=False)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         self._frames = demonstration_frames(self.split.train)
         demonstrations = len(self._frames)
-        self.sample_rate = min(1.0, self.run.batch_size / demonstrations)
+        self.sample_rate = min(1.0, self.run.dp_batch / demonstrations) if self.run.dp_batch else 1.0
+        self.private = private_part(self.bundle.policy, self.run.dp_train)
+        if not self.private:
+            raise Zk0Error(
+                f"dp-train={self.run.dp_train!r} matches none of the policy's trainable weights; expected dp-train='all'."
+            )
         self.noise_multiplier = self.run.dp_noise_multiplier or get_noise_multiplier(
             target_epsilon=self.run.dp_epsilon_budget,
             target_delta=self.run.dp_delta,
@@ -99,11 +123,14 @@ class PrivateTrainer(LocalTrainer):
             expected_batch_size=max(1, round(self.sample_rate * demonstrations)),
         )
         logger.info(
-            "Record-level DP over {} demonstrations of {}: each drawn with probability {:.3g} a step, gradients "
-            "clipped to {:g}, noise multiplier {:.3g} (Opacus)",
+            "Record-level DP over {} demonstrations of {}: each drawn with probability {:.3g} a step ({} frame(s) "
+            "each), gradients of {} ({} weights) clipped to {:g}, noise multiplier {:.3g} (Opacus)",
             demonstrations,
             self.dataset_name,
             self.sample_rate,
+            self.run.dp_frames,
+            self.run.dp_train,
+            sum(self.bundle.policy.get_parameter(n).numel() for n in self.private),
             self.run.dp_clip,
             self.noise_multiplier,
         )
@@ -140,8 +167,9 @@ class PrivateTrainer(LocalTrainer):
         """Nothing to open: each step draws its own demonstrations."""
 
     def _next_batch(self) -> dict | None:
-        """One frame of each demonstration the step's Poisson draw picked (None: it picked none). The
-        draw is seeded by the run's seed, the dataset and the step, so a resumed run draws the same."""
+        """``dp-frames`` frames of each demonstration the step's Poisson draw picked, in turn (None: it
+        picked none). The draw is seeded by the run's seed, the dataset and the step, so a resumed
+        run draws the same."""
         step = self.batches_seen
         self.batches_seen += 1
         seed = np.random.SeedSequence([self.run.seed, zlib.crc32(self.dataset_name.encode()), step])
@@ -152,43 +180,65 @@ class PrivateTrainer(LocalTrainer):
         (drawn,) = list(sampler)
         if not drawn:
             return None
-        picks = [self._frames[d][int(torch.randint(len(self._frames[d]), (1,), generator=generator))] for d in drawn]
-        return default_collate([self.split.train[int(i)] for i in picks])
+        frames = self.run.dp_frames
+        picks = [
+            self._frames[d][torch.randint(len(self._frames[d]), (frames,), generator=generator).numpy()] for d in drawn
+        ]
+        return default_collate([self.split.train[int(i)] for pick in picks for i in pick])
 
     def _prepare(self, batch: dict | None) -> dict | None:
         return None if batch is None else super()._prepare(batch)
 
+    @contextmanager
+    def _only_private(self):
+        """The weights outside ``dp-train`` frozen for a step: Opacus's optimizer clips, noises and
+        steps the parameters that require a gradient, and these keep the global model's values."""
+        frozen = [
+            p for name, p in self.bundle.policy.named_parameters() if p.requires_grad and name not in self.private
+        ]
+        for p in frozen:
+            p.requires_grad_(False)
+            p.grad = None
+        try:
+            yield [self.bundle.policy.get_parameter(name) for name in self.private]
+        finally:
+            for p in frozen:
+                p.requires_grad_(True)
+
     def _step(self, tracker: MetricsTracker, batch: dict | None) -> int:
-        """A DP-SGD step: per-sample gradients, Opacus's clip, noise and AdamW step, then the schedule."""
+        """A DP-SGD step: each demonstration's gradient, Opacus's clip, noise and AdamW step, then the schedule."""
         started = time.perf_counter()
         policy = self.bundle.policy
         policy.train()
-        params = [p for group in self.optimizer.param_groups for p in group["params"] if p.requires_grad]
-        size = 0 if batch is None else len(batch["action"])
-        per_sample: list[list[torch.Tensor]] = [[] for _ in params]
+        samples = 0 if batch is None else len(batch["action"])
+        size = samples // self.run.dp_frames  # demonstrations drawn
         losses = []
-        for i in range(size):
-            for p in params:
+        with self._only_private() as params:
+            per_demo: list[list[torch.Tensor]] = [[] for _ in params]
+            for i in range(size):
+                for p in params:
+                    p.grad = None
+                with self.accelerator.autocast():
+                    loss, _ = policy.forward(demonstration_part(batch, i, self.run.dp_frames, samples))
+                loss.backward()
+                losses.append(float(loss.detach()))
+                for grads, p in zip(per_demo, params, strict=True):
+                    grads.append(torch.zeros_like(p) if p.grad is None else p.grad.detach().clone())
+            for grads, p in zip(per_demo, params, strict=True):
                 p.grad = None
-            with self.accelerator.autocast():
-                loss, _ = policy.forward(one_sample(batch, i, size))
-            loss.backward()
-            losses.append(float(loss.detach()))
-            for grads, p in zip(per_sample, params, strict=True):
-                grads.append(torch.zeros_like(p) if p.grad is None else p.grad.detach().clone())
-        for grads, p in zip(per_sample, params, strict=True):
-            p.grad = None
-            p.grad_sample = torch.stack(grads) if grads else torch.zeros((0, *p.shape), device=p.device)
-        norms = torch.stack([p.grad_sample.reshape(size, -1).norm(dim=1) for p in params]).norm(dim=0) if size else None
-        self.private_optimizer.step()
-        self.private_optimizer.zero_grad(set_to_none=True)
+                p.grad_sample = torch.stack(grads) if grads else torch.zeros((0, *p.shape), device=p.device)
+            norms = (
+                torch.stack([p.grad_sample.reshape(size, -1).norm(dim=1) for p in params]).norm(dim=0) if size else None
+            )
+            self.private_optimizer.step()
+            self.private_optimizer.zero_grad(set_to_none=True)
         if self.scheduler is not None:
             self.scheduler.step()
         tracker.loss = sum(losses) / size if size else 0.0
         tracker.grad_norm = float(norms.mean()) if norms is not None else 0.0
         tracker.lr = self.optimizer.param_groups[0]["lr"]
         tracker.update_s = time.perf_counter() - started
-        return size
+        return samples
 
     def fit(self, steps: int, mu: float, global_step: int, budget_s: float = 0.0) -> dict[str, float]:
         metrics = super().fit(steps, mu, global_step, budget_s)
