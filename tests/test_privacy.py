@@ -558,6 +558,7 @@ def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owne
     args = argparse.Namespace(model="tiny", start=None, rounds=4, local_steps=3, lr=1e-3, delta=1e-5)
     found = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
     assert 0.0 < found["record-noise-share"] < 100.0
+    assert -1.0 <= found["record-update-cosine"] < 1.0, "the noise turns the update"
     rate = found["sample-rate"]  # the run's batch (8) over the owner's training demonstrations
     assert 0.0 < rate <= 1.0
     expected = get_noise_multiplier(target_epsilon=8.0, target_delta=1e-5, sample_rate=rate, steps=12, accountant="rdp")
