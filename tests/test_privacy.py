@@ -499,6 +499,10 @@ def test_the_privacy_benchmark_plans_every_run_and_compares_on_paired_episodes(t
                                           "head:dp-train='head'"])  # fmt: skip
     plan = planned_runs(compared, owner_clip=None)
     assert list(plan) == [NON_PRIVATE, "record e=8 full", "record e=8 head"]
+    ceiling = build_parser().parse_args(["--epsilons", "8", "2", "--aggregations", "mean", "--attacks", "--recipes",
+                                         "full:dp-batch=0", "noiseless:dp-batch=0 dp-noise-multiplier=1e-12"])  # fmt: skip
+    assert list(planned_runs(ceiling, owner_clip=None)) == [NON_PRIVATE, "record e=8 full", "record noiseless",
+                                                            "record e=2 full"], "a recipe with its own noise runs once"  # fmt: skip
     assert plan["record e=8 full"]["keys"] == {"dp": "record", "dp-epsilon-budget": 8.0, "dp-delta": 1e-5,
                                                "dp-batch": 0, "local-steps": 3}  # fmt: skip
 

@@ -8,7 +8,9 @@ every run through the real app (``flwr run``, simulated clients), once per ``--s
 - **record e=E** for each ``--epsilons`` E: ``dp = "record"``, each owner's DP-SGD noise calibrated
   by Opacus so that the run spends E (at ``--delta``) of each owner's demonstrations; with
   ``--recipes NAME:KEYS ...``, **record e=E NAME** for each recipe instead, its run-config keys
-  (``dp-batch``, ``dp-frames``, ``dp-train``, ``local-steps``, ``lr``, ...) over the run's;
+  (``dp-batch``, ``dp-frames``, ``dp-train``, ``local-steps``, ``lr``, ...) over the run's (a
+  recipe that sets its own ``dp-epsilon-budget`` or ``dp-noise-multiplier`` runs once, as
+  **record NAME**: a noiseless ceiling, or the noise of more demonstrations);
 - **owner e=E**: ``dp = "owner"``, Flower's central DP calibrated by dp-accounting so that the
   run's rounds spend E, each update clipped to the median update norm the non-private run's
   first round measured (the usual choice: about half the updates are clipped);
@@ -139,7 +141,10 @@ def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
     for epsilon in args.epsilons:
         privacy = {"dp-epsilon-budget": epsilon, "dp-delta": args.delta}
         for name, keys in recipes(args).items():
-            label = f"record e={epsilon:g}" + (f" {name}" if name else "")
+            own_noise = {"dp-epsilon-budget", "dp-noise-multiplier"} & set(keys)  # a ceiling, or another budget
+            if own_noise and epsilon != args.epsilons[0]:
+                continue  # one run of it, whatever --epsilons says
+            label = f"record {name}" if own_noise else f"record e={epsilon:g}" + (f" {name}" if name else "")
             runs[label] = {"keys": {"dp": "record", **privacy, **keys}, "attack": None}
         if owner_clip is not None:
             runs[f"owner e={epsilon:g}"] = {"keys": {"dp": "owner", "dp-clip": owner_clip, **privacy}, "attack": None}
