@@ -359,11 +359,18 @@ def test_dp_off_is_flowers_weighted_mean_byte_for_byte():
 
 @pytest.fixture
 def private_client(registry):
-    """Client 0 (6 training demonstrations) built for record-level DP, 4 demonstrations a step expected."""
+    """Client 0 (6 training demonstrations) built for record-level DP, 4 demonstrations a step expected, one frame each."""
     from zk0.federation.client import build_client
 
     run = from_run_config(
-        {"dp-batch": 4, "lr": 1e-3, "dp": "record", "dp-noise-multiplier": 1.0, "dp-epsilon-budget": 11.0}
+        {
+            "dp-batch": 4,
+            "dp-frames": 1,
+            "lr": 1e-3,
+            "dp": "record",
+            "dp-noise-multiplier": 1.0,
+            "dp-epsilon-budget": 11.0,
+        }
     )
     return build_client(run, registry.clients[0], registry.model_cameras())
 
@@ -374,6 +381,8 @@ def test_the_small_data_recipe_steps_every_demonstration_once_and_trains_only_it
     frames of each make one clipped gradient per demonstration, and ``dp-train`` moves its part of
     SmolVLA alone: the rest keeps the global model, and is trainable again after the step (a
     personal fine-tune trains it)."""
+    from opacus.accountants import RDPAccountant
+
     from zk0.config import DP_PARTS
     from zk0.federation.client import build_client
     from zk0.learning.policy import snapshot
@@ -397,7 +406,11 @@ def test_the_small_data_recipe_steps_every_demonstration_once_and_trains_only_it
     assert moved == private and private, f"the {part} move, the rest keeps the global model"
     assert all(p.requires_grad for n, p in client.bundle.policy.named_parameters() if n in before)
     metrics = trainer.fit(1, 0.0, 1)
-    assert metrics["local-steps"] == 1 and metrics["record-epsilon"] > 0
+    accountant = RDPAccountant()
+    accountant.step(noise_multiplier=1.0, sample_rate=1.0)
+    accountant.step(noise_multiplier=1.0, sample_rate=1.0)
+    assert metrics["local-steps"] == 1 and trainer.private_steps == 2, "the draw above and the round's step"
+    assert metrics["record-epsilon"] == pytest.approx(accountant.get_epsilon(1e-5), rel=1e-9)
 
 
 @pytest.mark.parametrize(
@@ -563,8 +576,8 @@ def test_the_noise_crossover_isolates_record_level_noise_and_solves_for_the_owne
     found = noise_crossover(args, PROJECT_ROOT / "pyproject.toml", 8.0)
     assert 0.0 < found["record-noise-share"] < 100.0
     assert -1.0 <= found["record-update-cosine"] < 1.0, "the noise turns the update"
-    rate = found["sample-rate"]  # the run's batch (8) over the owner's training demonstrations
-    assert 0.0 < rate <= 1.0
+    rate = found["sample-rate"]
+    assert rate == 1.0, "dp-batch = 0: every demonstration, every step"
     expected = get_noise_multiplier(target_epsilon=8.0, target_delta=1e-5, sample_rate=rate, steps=12, accountant="rdp")
     assert found["record-noise-multiplier"] == pytest.approx(expected)
     share = found["owner-noise-multiplier"] * math.sqrt(found["weights"])

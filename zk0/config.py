@@ -122,8 +122,8 @@ class RunConfig:
     )
     dp_delta: float = 1e-5  # the delta of (epsilon, delta)-DP
     dp_epsilon_budget: float = 8.0  # the run stops before a release would spend more epsilon than this
-    dp_batch: int = 8  # record: demonstrations each private step draws, in expectation; 0 = every one (q = 1)
-    dp_frames: int = 1  # record: frames of each drawn demonstration averaged into its one clipped gradient
+    dp_batch: int = 0  # record: demonstrations each private step draws, in expectation; 0 = every one (q = 1)
+    dp_frames: int = 8  # record: frames of each drawn demonstration averaged into its one clipped gradient
     dp_train: str = "all"  # record: what the owner trains privately (DP_PARTS); the rest keeps the global model
     aggregation: str = "mean"  # mean (weighted), or a robust rule of Flower's or ByzFL's (zk0.federation.robust)
     pre_aggregation: str = "none"  # none | nnm | arc: ByzFL's pre-aggregator before ByzFL's rule or the mean
