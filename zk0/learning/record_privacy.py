@@ -14,9 +14,10 @@ local step therefore:
   frames) through the policy's ``forward`` (the loss ``update_policy`` uses). Opacus's hooks
   cannot follow SmolVLA's in-place residual additions and ``torch.func.vmap`` stops at its
   ``.item()`` calls, so the per-demonstration gradients are built one at a time;
-- with ``dp-train = "projections"`` only SmolVLA's projections (state, action and time) take
-  these steps and the rest of the trainable weights keep the global model's values: the noise
-  a step adds grows with the square root of the weights it touches (docs/privacy.md);
+- with ``dp-train = "projections"`` (or ``"head"``) only SmolVLA's projections (state, action and
+  time; or the action output alone) take these steps and the rest of the trainable weights keep
+  the global model's values: the noise a step adds grows with the square root of the weights it
+  touches (docs/privacy.md);
 - hands those gradients to Opacus's ``DPOptimizer`` around the trainer's own AdamW: it clips each
   to ``dp-clip``, adds Gaussian noise of ``dp-noise-multiplier x dp-clip`` to their sum, divides
   by the expected batch size and steps; lerobot's scheduler follows as in ``update_policy``;
