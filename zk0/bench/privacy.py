@@ -129,6 +129,12 @@ def recipes(args) -> dict[str, dict]:
     return found
 
 
+def own_noise(keys: dict) -> bool:
+    """Whether a recipe sets its own noise or budget (a noiseless ceiling, the noise of more
+    demonstrations): it runs once, whatever ``--epsilons`` says, and has no noise crossover."""
+    return bool({"dp-epsilon-budget", "dp-noise-multiplier"} & set(keys))
+
+
 def rule_keys(rule: str, hostile: int) -> dict:
     """The run-config keys of ``--aggregations``' ``rule`` outvoting ``hostile`` owners."""
     pre, _, name = rule.rpartition("+")
@@ -141,10 +147,9 @@ def planned_runs(args, owner_clip: float | None) -> dict[str, dict]:
     for epsilon in args.epsilons:
         privacy = {"dp-epsilon-budget": epsilon, "dp-delta": args.delta}
         for name, keys in recipes(args).items():
-            own_noise = {"dp-epsilon-budget", "dp-noise-multiplier"} & set(keys)  # a ceiling, or another budget
-            if own_noise and epsilon != args.epsilons[0]:
-                continue  # one run of it, whatever --epsilons says
-            label = f"record {name}" if own_noise else f"record e={epsilon:g}" + (f" {name}" if name else "")
+            if own_noise(keys) and epsilon != args.epsilons[0]:
+                continue
+            label = f"record {name}" if own_noise(keys) else f"record e={epsilon:g}" + (f" {name}" if name else "")
             runs[label] = {"keys": {"dp": "record", **privacy, **keys}, "attack": None}
         if owner_clip is not None:
             runs[f"owner e={epsilon:g}"] = {"keys": {"dp": "owner", "dp-clip": owner_clip, **privacy}, "attack": None}
@@ -429,7 +434,7 @@ def main(argv: list[str] | None = None) -> int:
         f"e={e:g}" + (f" {name}" if name else ""): noise_crossover(args, registry, e, keys)
         for e in args.epsilons
         for name, keys in recipes(args).items()
-        if "dp-noise-multiplier" not in keys  # a recipe with its own noise (a noiseless ceiling) has no crossover
+        if not own_noise(keys)
     }
     figures["success"] = rollouts(args, registry, finals)
     seeds = list(args.seeds)

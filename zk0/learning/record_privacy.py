@@ -98,6 +98,7 @@ class PrivateTrainer(LocalTrainer):
     noise_multiplier: float = field(init=False)
     private_optimizer: DPOptimizer = field(init=False)
     private: list[str] = field(init=False)  # the parameters the steps train (dp-train)
+    _others: list[torch.nn.Parameter] = field(init=False)  # the trainable ones they leave at the global model
     _frames: list[np.ndarray] = field(init=False)
 
     def __post_init__(self) -> None:
@@ -106,6 +107,8 @@ class PrivateTrainer(LocalTrainer):
         demonstrations = len(self._frames)
         self.sample_rate = min(1.0, self.run.dp_batch / demonstrations) if self.run.dp_batch else 1.0
         self.private = private_part(self.bundle.policy, self.run.dp_train)
+        params = dict(self.bundle.policy.named_parameters())
+        self._others = [params[name] for name in self.bundle.trainable_names if name not in self.private]
         if not self.private:
             raise Zk0Error(
                 f"dp-train={self.run.dp_train!r} matches none of the policy's trainable weights; expected dp-train='all'."
@@ -194,16 +197,13 @@ class PrivateTrainer(LocalTrainer):
     def _only_private(self):
         """The weights outside ``dp-train`` frozen for a step: Opacus's optimizer clips, noises and
         steps the parameters that require a gradient, and these keep the global model's values."""
-        frozen = [
-            p for name, p in self.bundle.policy.named_parameters() if p.requires_grad and name not in self.private
-        ]
-        for p in frozen:
+        for p in self._others:
             p.requires_grad_(False)
             p.grad = None
         try:
             yield [self.bundle.policy.get_parameter(name) for name in self.private]
         finally:
-            for p in frozen:
+            for p in self._others:
                 p.requires_grad_(True)
 
     def _step(self, tracker: MetricsTracker, batch: dict | None) -> int:
