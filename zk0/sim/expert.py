@@ -1,7 +1,9 @@
-"""The scripted expert that demonstrates the pick-up: Cartesian waypoints, damped-least-squares IK.
+"""The scripted expert that demonstrates each task: Cartesian waypoints, damped-least-squares IK.
 
-It reads the cube's pose from the simulator (a policy never can), plans a top-down grasp
-(above the cube, down, close, lift), and at each control step solves the arm's inverse
+It reads the cubes' and pads' poses from the simulator (a policy never can), plans a top-down grasp
+(above the cube, down, close, lift) and, for a task that moves the cube somewhere, the carry (over
+its pad or the lower cube, down, open, back up; a sort does it for each cube), and at each
+control step solves the arm's inverse
 kinematics for the next point of that path with ``mj_jacSite`` on a copy of the model's
 state. It returns joint targets in lerobot units, as a leader arm would command them, so its
 episodes record exactly like teleoperated SO-101 data. ``speed`` is how fast it moves (m/s):
@@ -18,7 +20,8 @@ from zk0.sim.env import PickCubeEnv, to_lerobot
 mujoco = load_mujoco()
 ARM = 4  # shoulder_pan .. wrist_flex solve position and pointing; wrist_roll turns the jaws to the cube
 OPEN, CLOSED = 55.0, 0.0  # gripper targets (lerobot 0-100)
-ABOVE_M, LIFT_M = 0.07, 0.05  # approach height over the cube, and how high it is lifted
+ABOVE_M, LIFT_M = 0.07, 0.05  # approach height over the cube, and how high a pick-up lifts it
+DROP_M = 0.004  # a carried cube is let go this far above where it rests
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -42,33 +45,60 @@ class PickExpert:
         self.dt = 1.0 / env.task.fps
 
     def reset(self) -> None:
-        """Plan the path from where the grasp point is now to the cube and up."""
+        """Plan the path from where the grasp point is now: to the cube and up, and for a task
+        that moves cubes, on to where each goes."""
         env = self.env
         self.q = env.data.qpos[env.joint_ids].copy()  # the targets the expert last commanded (rad)
         start = env.data.site("grasp").xpos.copy()
-        cube = env.cube_pos()
-        above = cube + [0, 0, ABOVE_M]
-        self.roll = self._roll_for(env.cube_yaw(), above)
-        # (where to, gripper, seconds): seconds from distance and speed, with floors for the slow parts
-        self.plan = [
-            (above, OPEN, max(0.6, np.linalg.norm(above - start) / self.speed)),
-            (cube, OPEN, max(0.5, ABOVE_M / (0.5 * self.speed))),
-            (cube, CLOSED, 0.6),
-            (cube + [0, 0, LIFT_M], CLOSED, max(0.5, LIFT_M / (0.5 * self.speed))),
-            (cube + [0, 0, LIFT_M], CLOSED, 10.0),
-        ]
+        rolls = {name: self._roll_for(env.cube_yaw(name), env.cube_pos(name) + [0, 0, ABOVE_M]) for name in env.movers}
+        # (where to, gripper, seconds, wrist roll): seconds from distance and speed, with floors for the slow parts
+        self.plan, at = [], start
+        for name in env.movers:
+            at = self._grasp(env.cube_pos(name), rolls[name], at)
+            if env.task.kind != "pick":
+                at = self._carry(env.target_of(name), rolls[name], at)
+        self.plan.append((at, self.plan[-1][1], 10.0, self.plan[-1][3]))  # then stay there
         self.leg, self.t, self.origin = 0, 0.0, start
         self.gripper_from = float(env.joint_pos()[5])
+        self.roll = self.roll_from = self.plan[0][3]
+
+    def _grasp(self, cube: np.ndarray, roll: float, start: np.ndarray) -> np.ndarray:
+        """Legs that take the cube at ``cube`` from ``start``: over it, down, close, up (a pick-up's
+        lift; a carry's travelling height). Returns where they end."""
+        above = cube + [0, 0, ABOVE_M]
+        height = LIFT_M if self.env.task.kind == "pick" else ABOVE_M
+        up = cube + [0, 0, height]
+        self.plan += [
+            (above, OPEN, max(0.6, np.linalg.norm(above - start) / self.speed), roll),
+            (cube, OPEN, max(0.5, ABOVE_M / (0.5 * self.speed)), roll),
+            (cube, CLOSED, 0.6, roll),
+            (up, CLOSED, max(0.5, height / (0.5 * self.speed)), roll),
+        ]
+        return up
+
+    def _carry(self, rest: np.ndarray, roll: float, start: np.ndarray) -> np.ndarray:
+        """Legs that bring a held cube from ``start`` to rest with its centre at ``rest``: over it,
+        down, open, back up. Returns where they end."""
+        above, release = rest + [0, 0, ABOVE_M], rest + [0, 0, DROP_M]
+        lower = max(0.5, ABOVE_M / (0.5 * self.speed))
+        self.plan += [
+            (above, CLOSED, max(0.6, np.linalg.norm(above - start) / self.speed), roll),
+            (release, CLOSED, lower, roll),
+            (release, OPEN, 0.5, roll),
+            (above, OPEN, lower, roll),
+        ]
+        return above
 
     def act(self) -> np.ndarray:
         """The next joint targets (lerobot units)."""
-        goal, gripper, duration = self.plan[self.leg]
+        goal, gripper, duration, roll = self.plan[self.leg]
         self.t += self.dt
         s = smoothstep(self.t / duration)
         point = self.origin + s * (goal - self.origin)
         grip = self.gripper_from + s * (gripper - self.gripper_from)
+        self.roll = self.roll_from + s * (roll - self.roll_from)
         if self.t >= duration and self.leg + 1 < len(self.plan):
-            self.leg, self.t, self.origin, self.gripper_from = self.leg + 1, 0.0, goal, gripper
+            self.leg, self.t, self.origin, self.gripper_from, self.roll_from = self.leg + 1, 0.0, goal, gripper, roll
         self.q[:ARM] = self._solve(point)
         self.q[ARM] = self.roll
         action = to_lerobot(self.q, self.env.gripper_range)

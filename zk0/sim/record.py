@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from zk0.sim.env import CUBE_STATE, JOINTS, PickCubeEnv
+from zk0.sim.env import JOINTS, PickCubeEnv, privileged_names
 from zk0.sim.expert import PickExpert
 from zk0.sim.tasks import CAMERAS, DemoSpec, SimTask
 
@@ -23,10 +23,10 @@ JOINT_NAMES = tuple(f"{joint}.pos" for joint in JOINTS)  # as lerobot's SO-101 f
 
 
 def features(task: SimTask, height: int, width: int) -> dict:
-    """The dataset features of a real SO-101 recording with two cameras (the state with the cube's
-    xy after the joints in a ``cube_in_state`` task)."""
+    """The dataset features of a real SO-101 recording with two cameras (the state with the cubes'
+    and places' xy after the joints in a ``cube_in_state`` task)."""
     joint = {"dtype": "float32", "shape": (len(JOINT_NAMES),), "names": list(JOINT_NAMES)}
-    state_names = [*JOINT_NAMES, *CUBE_STATE] if task.cube_in_state else list(JOINT_NAMES)
+    state_names = [*JOINT_NAMES, *privileged_names(task)]
     state = {"dtype": "float32", "shape": (len(state_names),), "names": state_names}
     image = {"dtype": "video", "shape": (height, width, 3), "names": ["height", "width", "channels"]}
     return {"observation.state": state, "action": joint, **{f"observation.images.{c}": image for c in CAMERAS}}

