@@ -452,3 +452,25 @@ def test_a_task_of_an_unknown_kind_or_too_few_colours_is_refused_in_one_sentence
         SimTask(kind="pour")
     with pytest.raises(ValueError, match=r"A stack task names two cubes; its colours are \('red',\), expected two"):
         SimTask(kind="stack", colours=("red",))
+
+
+def test_lerobots_env_config_takes_the_task_and_its_env_says_the_instruction():
+    """``--env.kind`` makes lerobot's ``zk0_so101`` env do another task in the same set-up: the env
+    gymnasium builds from the config's own arguments gives that task's instruction, and a ``-cube``
+    set-up's state grows by what the task tells; a task that is not one is refused in one sentence."""
+    import gymnasium as gym
+
+    from zk0.sim.lerobot_env import GYM_ID, PickCubeEnvConfig
+
+    config = PickCubeEnvConfig(conditions="sim-so101-eval-cube", kind="sort", observation_height=32, observation_width=32)
+    assert config.features["agent_pos"].shape == (14,)
+    assert PickCubeEnvConfig(conditions="sim-so101-eval-cube").features["agent_pos"].shape == (8,)
+    env = gym.make(GYM_ID, **config.gym_kwargs)
+    try:
+        observation, _ = env.reset(seed=0)
+        assert observation["agent_pos"].shape == (14,)
+        assert env.unwrapped.task_description in {"Put each cube on the pad of its colour", "Sort the cubes onto the pads of their colours"}
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match=r"^--env.kind got 'pour'; expected one of pick, place, stack, sort\.$"):
+        PickCubeEnvConfig(kind="pour")

@@ -16,6 +16,8 @@ state also carries, in centimetres on the table, the xy of the cube to move and 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gymnasium as gym
 import numpy as np
 
@@ -322,7 +324,10 @@ class PickCubeEnv(gym.Env):
         return {"is_success": success, **self.outcome}
 
 
-def make_env(conditions: str = "sim-so101-eval", height: int = 128, width: int = 128) -> PickCubeEnv:
-    """The env in one recorded set-up's conditions (``zk0.sim.tasks.SIM_SPECS``), by name: what
-    ``gym.make`` builds for lerobot's ``zk0_so101`` env config."""
-    return PickCubeEnv(SIM_SPECS[conditions].task, height, width)
+def make_env(
+    conditions: str = "sim-so101-eval", height: int = 128, width: int = 128, kind: str | None = None
+) -> PickCubeEnv:
+    """The env in one recorded set-up's conditions (``zk0.sim.tasks.SIM_SPECS``), by name, doing
+    its own task or the ``kind`` given: what ``gym.make`` builds for lerobot's ``zk0_so101`` env config."""
+    task = SIM_SPECS[conditions].task
+    return PickCubeEnv(replace(task, kind=kind) if kind else task, height, width)
