@@ -474,3 +474,18 @@ def test_lerobots_env_config_takes_the_task_and_its_env_says_the_instruction():
         env.close()
     with pytest.raises(ValueError, match=r"^--env.kind got 'pour'; expected one of pick, place, stack, sort\.$"):
         PickCubeEnvConfig(kind="pour")
+
+
+def test_the_sim_benchmark_measures_each_tasks_expert_alone(tmp_path, capsys):
+    """``--kinds`` measures each task's expert on the same seeded episodes, with every grade of its
+    funnel; ``--expert-only`` stops there, and the JSON keeps each task's figures."""
+    from zk0.bench.sim import main
+
+    out = tmp_path / "sim.json"
+    assert main(["--episodes", "2", "--kinds", "place", "--expert-only", "--size", "32", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "expert, place, over 2 seeded episodes (sim-so101-eval, two cubes):" in printed
+    assert "placed " in printed and "recording" not in printed and "closed loop" not in printed
+    figures = json.loads(out.read_text())
+    assert set(figures["tasks"]) == {"place"} and figures["tasks"]["place"]["placed-rate"] >= figures["tasks"]["place"]["success-rate"]
+    assert "expert" not in figures  # the pick-up's place, for a run that measures it
