@@ -213,6 +213,25 @@ class PickCubeEnv(gym.Env):
         pad = "pad" if cube == "cube" else "pad2"
         return np.array([*self.place_of(pad)[:2], CUBE_HALF])
 
+    def rests_on_target(self, cube: str) -> bool:
+        """``cube`` rests where its task puts it now: its centre over the pad (or on the lower cube's
+        centre) and at the height it rests at there."""
+        offset = self.cube_pos(cube) - self.target_of(cube)
+        if self.task.kind == "stack":
+            over = np.linalg.norm(offset[:2]) < ON_CUBE_M
+        else:
+            over = np.abs(offset[:2]).max() < ON_PAD_M
+        return bool(over and abs(offset[2]) < RESTING_M)
+
+    def holds(self, cube: str = "cube") -> bool:
+        """Both jaw pads in contact with ``cube`` (over the contact arrays at once: a Python loop
+        over the contacts was a tenth of a closed-loop episode's time)."""
+        contacts = self.data.contact
+        pairs = np.stack([contacts.geom1, contacts.geom2], axis=1)
+        geom = self._cube_geom if cube == "cube" else self.model.geom(cube).id
+        with_cube = pairs[(pairs == geom).any(axis=1)]
+        return bool(np.isin(self._pad_geoms, with_cube).all())
+
     def cube_yaw(self, name: str = "cube") -> float:
         w, x, y, z = self.data.body(name).xquat
         return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
@@ -265,6 +284,7 @@ class PickCubeEnv(gym.Env):
         raise RuntimeError(f"No {count} {what} positions {APART_M} m apart in the region {region}.")
 
     def _fresh_outcome(self) -> dict[str, bool]:
+        """The funnel's grades, none met yet: a task that moves cubes somewhere adds placed."""
         grades = ("reached", "grasped", "lifted") + (("placed",) if self.task.kind != "pick" else ())
         return dict.fromkeys(grades, False)
 
@@ -291,25 +311,6 @@ class PickCubeEnv(gym.Env):
             self.outcome["placed"] |= placed
             done &= placed
         return done
-
-    def rests_on_target(self, cube: str) -> bool:
-        """``cube`` rests where its task puts it now: its centre over the pad (or on the lower cube's
-        centre) and at the height it rests at there."""
-        offset = self.cube_pos(cube) - self.target_of(cube)
-        if self.task.kind == "stack":
-            over = np.linalg.norm(offset[:2]) < ON_CUBE_M
-        else:
-            over = np.abs(offset[:2]).max() < ON_PAD_M
-        return bool(over and abs(offset[2]) < RESTING_M)
-
-    def holds(self, cube: str = "cube") -> bool:
-        """Both jaw pads in contact with ``cube`` (over the contact arrays at once: a Python loop
-        over the contacts was a tenth of a closed-loop episode's time)."""
-        contacts = self.data.contact
-        pairs = np.stack([contacts.geom1, contacts.geom2], axis=1)
-        geom = self._cube_geom if cube == "cube" else self.model.geom(cube).id
-        with_cube = pairs[(pairs == geom).any(axis=1)]
-        return bool(np.isin(self._pad_geoms, with_cube).all())
 
     def _images(self) -> dict[str, np.ndarray]:
         if self.renderer is None:
