@@ -20,11 +20,12 @@ from zk0.common.catalogue import Catalogue
 # Bumped whenever the scene, env or expert changes what is recorded: cached datasets are recorded again.
 RECORDER_VERSION = 3
 CAMERAS = ("front", "wrist")  # every recording's cameras (zk0.sim.record)
+SPAN = (0.16, 0.28, -0.12, 0.12)  # x0, x1, y0, y1 (m): the part of the table the server's set-up spans
 # What an owner teaches: pick up the named cube; put it on the pad of a named colour; stack it on
 # another named cube; or sort two cubes, each onto the pad of its own colour.
 KINDS = ("pick", "place", "stack", "sort")
-# How long an episode of each kind may run (s): about twice what the expert takes at its slowest pace
-# (a sort is two carries: 11-13 s at 0.15 m/s).
+# How long an episode of each kind may run (s): room for the expert at its slowest pace, 0.12 m/s
+# (a pick-up ~4 s, a place or stack up to 8 s, a sort, two carries, up to 16 s).
 EPISODE_S = {"pick": 10.0, "place": 10.0, "stack": 10.0, "sort": 20.0}
 # How each kind may be asked for (zk0.sim.env fills in the colours; one is drawn per episode). Pick-up
 # keeps its one sentence: its recorded datasets, and every figure measured on them, stay as they were.
@@ -50,7 +51,7 @@ class Look:
 class SimTask:
     """One set-up: what it teaches, where cubes appear, their colours, the look, how long an episode may run."""
 
-    region: tuple[float, float, float, float] = (0.16, 0.28, -0.12, 0.12)  # x0, x1, y0, y1 (m) of the cube
+    region: tuple[float, float, float, float] = SPAN  # x0, x1, y0, y1 (m) of the cube
     colours: tuple[str, ...] = ("red", "blue")
     distractor: bool = True  # a second cube of another colour: the task text says which one to pick
     look: Look = field(default_factory=Look)
@@ -64,7 +65,7 @@ class SimTask:
     kind: str = "pick"  # one of KINDS
     # Where the coloured pads of a place or sort task lie (x0, x1, y0, y1, m): the server's span, as
     # an owner's region alone is too small for two cubes and two pads 6 cm apart.
-    pad_region: tuple[float, float, float, float] = (0.16, 0.28, -0.12, 0.12)
+    pad_region: tuple[float, float, float, float] = SPAN
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -101,7 +102,7 @@ def with_cube_in_state(spec: DemoSpec) -> DemoSpec:
     )
 
 
-SERVER_TASK = SimTask(region=(0.16, 0.28, -0.12, 0.12), colours=("red", "blue", "green", "yellow"))
+SERVER_TASK = SimTask(region=SPAN, colours=("red", "blue", "green", "yellow"))
 OWNERS: tuple[DemoSpec, ...] = (
     DemoSpec(
         "sim-so101-left",
