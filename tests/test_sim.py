@@ -26,6 +26,7 @@ from zk0.sim.tasks import SERVER_TASK, SIM_SPECS, SimTask
 
 REGISTRY = "configs/sim-registry.toml"
 CUBE_REGISTRY = "configs/sim-cube-registry.toml"
+TASKS_REGISTRY = "configs/sim-tasks-registry.toml"
 SIM_SPECS_CAMERAS = {"front": "camera1", "wrist": "camera2"}  # the sim registries' camera map
 # The registry maps the env's cameras onto the model's inputs; lerobot-eval takes the same map.
 CAMERA_MAP = {"observation.images.front": "observation.images.camera1", "observation.images.wrist": "observation.images.camera2"}
@@ -489,3 +490,59 @@ def test_the_sim_benchmark_measures_each_tasks_expert_alone(tmp_path, capsys):
     figures = json.loads(out.read_text())
     assert set(figures["tasks"]) == {"place"} and figures["tasks"]["place"]["placed-rate"] >= figures["tasks"]["place"]["success-rate"]
     assert "expert" not in figures  # the pick-up's place, for a run that measures it
+
+
+def test_owners_who_teach_different_tasks_share_one_state_and_the_server_set_teaches_every_task():
+    """The multi-task registry: each owner teaches its own task in its own room, one teaches two,
+    the server's set takes every task in turn, and every set-up's state has the one layout that lets
+    them federate one policy. Generated owners draw what they teach from a seed of their own, in
+    the room their name already gives them; a name that asks for a task twice, or an owner of the
+    hand-written four to draw one, is not a set-up."""
+    from zk0.sim.env import state_size
+    from zk0.sim.tasks import KINDS, sim_owner
+
+    registry = load_registry(TASKS_REGISTRY)
+    owners = [SIM_SPECS[entry.name] for entry in registry.clients]
+    taught = [spec.kinds for spec in owners]
+    assert set().union(*taught) == set(KINDS) and sorted(map(len, taught)) == [1, 1, 1, 2]
+    server = SIM_SPECS[registry.server.name]
+    assert server.kinds == KINDS and server.role == "server" and server.task.colours == SERVER_TASK.colours
+    assert {state_size(task) for spec in [*owners, server] for task in spec.tasks} == {6 + 8}
+    assert owners[0].task.look == SIM_SPECS["sim-so101-left"].task.look
+    assert owners[0].task.region == SIM_SPECS["sim-so101-left"].task.region
+
+    drawn = [SIM_SPECS[f"sim-so101-owner-{i}-task-cube"] for i in range(16)]
+    assert set().union(*(spec.kinds for spec in drawn)) == set(KINDS)
+    assert 1 <= sum(len(spec.kinds) == 2 for spec in drawn) <= 8
+    for index, spec in enumerate(drawn):
+        assert (spec.task.region, spec.task.look) == (sim_owner(index).task.region, sim_owner(index).task.look)
+        named = SIM_SPECS[f"sim-so101-owner-{index}-{'-'.join(spec.kinds)}-cube"]
+        assert named.repo_id == spec.repo_id, "one dataset, whichever name asks for it"
+    for name in ("sim-so101-left-place-place", "sim-so101-left-task", "sim-so101-eval-fly", "sim-so101-owner-03-place"):
+        assert name not in SIM_SPECS, name
+
+
+def test_a_multi_task_set_up_records_its_tasks_in_turn_in_the_shared_state(tmp_path):
+    """Its episodes take its tasks in turn, each with its own instruction, and every state holds the
+    cube, where it goes, a sort's second cube and where that goes (cm), zero where a task has none:
+    a place tells its pad, a stack the cube below."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from zk0.sim.record import record_demonstrations
+    from zk0.sim.tasks import INSTRUCTIONS
+
+    spec = replace(SIM_SPECS["sim-so101-far-right-place-stack-cube"], height=32, width=32)
+    root = tmp_path / "place-stack"
+    record_demonstrations(spec, root, seed=0, episodes=2)
+    dataset = LeRobotDataset(spec.repo_id, root=root)
+    names = dataset.meta.features["observation.state"]["names"]
+    assert names == [*JOINT_NAMES, "cube.x", "cube.y", "goal.x", "goal.y", "cube2.x", "cube2.y", "goal2.x", "goal2.y"]
+    episodes = [int(e) for e in dataset.hf_dataset["episode_index"]]
+    for kind, episode in (("place", 0), ("stack", 1)):
+        frame = dataset[episodes.index(episode)]
+        instructions = [re.escape(t).replace(r"\{cube\}", r"\w+").replace(r"\{pad\}", r"\w+").replace(r"\{base\}", r"\w+")
+                        for t in INSTRUCTIONS[kind]]  # fmt: skip
+        assert any(re.fullmatch(pattern, frame["task"]) for pattern in instructions), (kind, frame["task"])
+        state = frame["observation.state"].numpy()
+        assert np.all(state[10:] == 0) and np.all(np.abs(state[6:10]) > 0), (kind, state)
+        assert np.linalg.norm(state[6:8] - state[8:10]) > 100 * APART_M - 1e-3, "where it goes is not where it starts"

@@ -18,26 +18,31 @@ MAX_OWNERS = 1000  # owner indices run 0-999: more than any simulated federation
 
 
 class Catalogue(Mapping[str, Spec]):
-    """``fixed`` specs by name, and any name matching ``pattern`` (its group ``index``: 0-999,
-    written without leading zeros) made by ``make(match)``.
+    """``fixed`` specs by name, and any name matching one of ``families``' patterns made by that
+    pattern's ``make(match)`` (a group ``index``, where the pattern has one: 0-999, written without
+    leading zeros; ``make`` raises KeyError for a name its pattern matches but it does not make).
 
     Iterating lists only the fixed names (what ``zk0 assets`` makes by default); looking up or
     testing ``in`` also knows the generated ones.
     """
 
-    def __init__(self, fixed: dict[str, Spec], pattern: str, make: Callable[[re.Match], Spec], shown: str) -> None:
+    def __init__(self, fixed: dict[str, Spec], families: dict[str, Callable[[re.Match], Spec]], shown: str) -> None:
         self._fixed = fixed
-        self._pattern = re.compile(pattern)
-        self._make = make
+        self._families = [(re.compile(pattern), make) for pattern, make in families.items()]
         self.shown = shown  # how an error message names the generated ones, e.g. ``synth-owner-<N>``
 
     def __getitem__(self, name: str) -> Spec:
         if name in self._fixed:
             return self._fixed[name]
-        match = self._pattern.fullmatch(name) if isinstance(name, str) else None
-        if match is None or int(match["index"]) >= MAX_OWNERS or match["index"] != str(int(match["index"])):
-            raise KeyError(name)
-        return self._make(match)
+        for pattern, make in self._families:
+            match = pattern.fullmatch(name) if isinstance(name, str) else None
+            if match is None:
+                continue
+            index = match.groupdict().get("index")
+            if index is not None and (int(index) >= MAX_OWNERS or index != str(int(index))):
+                raise KeyError(name)
+            return make(match)
+        raise KeyError(name)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._fixed)

@@ -36,6 +36,15 @@ PRIVILEGED = {
     "stack": ("cube", "distractor"),
     "sort": ("cube", "pad", "distractor", "pad2"),
 }
+# The one layout every kind's state shares in a multi-task set-up (``SimTask.shared_state``): the
+# cube to move, where it goes, a sort's second cube and where that goes (None: zero, as a kind has none).
+SHARED = {
+    "pick": ("cube", None, None, None),
+    "place": ("cube", "pad", None, None),
+    "stack": ("cube", "distractor", None, None),
+    "sort": ("cube", "pad", "distractor", "pad2"),
+}
+SHARED_NAMES = ("cube", "goal", "cube2", "goal2")
 COLOURS = {
     "red": (0.85, 0.12, 0.12, 1.0),
     "green": (0.15, 0.7, 0.2, 1.0),
@@ -67,9 +76,12 @@ def open_renderer(model: mujoco.MjModel, height: int, width: int) -> mujoco.Rend
 
 def privileged_names(task: SimTask) -> tuple[str, ...]:
     """The names of what a ``cube_in_state`` task's state holds after the joints (none otherwise):
-    a pick-up's ``cube.x``, ``cube.y``, as its recorded datasets name them."""
+    a pick-up's ``cube.x``, ``cube.y``, as its recorded datasets name them; in a multi-task set-up
+    every kind's eight (``SHARED``)."""
     if not task.cube_in_state:
         return ()
+    if task.shared_state:
+        return tuple(f"{body}.{axis}" for body in SHARED_NAMES for axis in "xy")
     names = {"cube": "cube", "pad": "pad", "distractor": "cube2", "pad2": "pad2"}
     return tuple(f"{names[body]}.{axis}" for body in PRIVILEGED[task.kind] for axis in "xy")
 
@@ -183,7 +195,8 @@ class PickCubeEnv(gym.Env):
         """The observation now: both cameras rendered, and the state."""
         state = self.joint_pos()
         if self.task.cube_in_state:
-            places = [self.place_of(body)[:2] for body in PRIVILEGED[self.task.kind]]
+            bodies = SHARED[self.task.kind] if self.task.shared_state else PRIVILEGED[self.task.kind]
+            places = [self.place_of(body)[:2] if body else np.zeros(2) for body in bodies]
             state = np.concatenate([state, 100.0 * np.concatenate(places)]).astype(np.float32)
         return {"pixels": self._images(), "agent_pos": state}
 
@@ -329,6 +342,6 @@ def make_env(
     conditions: str = "sim-so101-eval", height: int = 128, width: int = 128, kind: str | None = None
 ) -> PickCubeEnv:
     """The env in one recorded set-up's conditions (``zk0.sim.tasks.SIM_SPECS``), by name, doing
-    its own task or the ``kind`` given: what ``gym.make`` builds for lerobot's ``zk0_so101`` env config."""
+    its own task (a multi-task set-up's first) or the ``kind`` given: what ``gym.make`` builds for lerobot's ``zk0_so101`` env config."""
     task = SIM_SPECS[conditions].task
     return PickCubeEnv(replace(task, kind=kind) if kind else task, height, width)

@@ -54,14 +54,15 @@ def demonstrate(env: PickCubeEnv, expert: PickExpert, seed: int) -> tuple[list[d
 
 def record_demonstrations(spec: DemoSpec, root: Path, seed: int, episodes: int | None = None) -> dict:
     """Record ``episodes`` (default ``spec.episodes``) successful expert episodes into a
-    LeRobotDataset at ``root``; returns what it took (attempts, successes, seconds)."""
+    LeRobotDataset at ``root`` (a multi-task set-up's kinds in turn); returns what it took
+    (attempts, successes, seconds)."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     wanted = spec.episodes if episodes is None else episodes
     started = time.perf_counter()
-    env = PickCubeEnv(spec.task, spec.height, spec.width)
+    envs = [PickCubeEnv(task, spec.height, spec.width) for task in spec.tasks]
     try:
-        expert = PickExpert(env, spec.speed)
+        experts = [PickExpert(env, spec.speed) for env in envs]
         dataset = LeRobotDataset.create(
             repo_id=spec.repo_id,
             fps=spec.task.fps,
@@ -74,7 +75,8 @@ def record_demonstrations(spec: DemoSpec, root: Path, seed: int, episodes: int |
         while kept < wanted:
             if attempts >= 2 * wanted + 10:
                 raise RuntimeError(f"The expert succeeded in {kept} of {attempts} episodes of {spec.name!r}.")
-            frames, success = demonstrate(env, expert, episode_seed(seed, spec.name, attempts))
+            turn = kept % len(envs)  # a multi-task set-up's episodes take its kinds in turn
+            frames, success = demonstrate(envs[turn], experts[turn], episode_seed(seed, spec.name, attempts))
             attempts += 1
             if not success:
                 continue
@@ -84,5 +86,6 @@ def record_demonstrations(spec: DemoSpec, root: Path, seed: int, episodes: int |
             kept += 1
         dataset.finalize()
     finally:
-        env.close()
+        for env in envs:
+            env.close()
     return {"attempts": attempts, "episodes": kept, "seconds": time.perf_counter() - started}

@@ -66,6 +66,10 @@ class SimTask:
     # Where the coloured pads of a place or sort task lie (x0, x1, y0, y1, m): the server's span, as
     # an owner's region alone is too small for two cubes and two pads 6 cm apart.
     pad_region: tuple[float, float, float, float] = SPAN
+    # With cube_in_state: the state in the one layout every kind shares (the cube, where it goes, a
+    # sort's second cube and where that goes; zero where a kind has none), so owners who teach
+    # different tasks federate one policy (a multi-task set-up, ``with_kinds``).
+    shared_state: bool = False
 
     def __post_init__(self):
         if self.kind not in KINDS:
@@ -93,12 +97,33 @@ class DemoSpec:
     width: int = 128
     role: str = "client"
     cameras: tuple[str, ...] = CAMERAS
+    kinds: tuple[str, ...] = ()  # what its episodes teach, in turn (``with_kinds``); empty: the task's kind
+
+    @property
+    def tasks(self) -> tuple[SimTask, ...]:
+        """The task of each kind it teaches, in the order its episodes take them."""
+        return tuple(replace(self.task, kind=kind) for kind in self.kinds) if self.kinds else (self.task,)
 
 
 def with_cube_in_state(spec: DemoSpec) -> DemoSpec:
     """The same set-up and expert, recorded with the cube's position in the state (``-cube``)."""
     return replace(
         spec, name=f"{spec.name}-cube", repo_id=f"{spec.repo_id}_cube", task=replace(spec.task, cube_in_state=True)
+    )
+
+
+def with_kinds(spec: DemoSpec, kinds: tuple[str, ...]) -> DemoSpec:
+    """The same set-up teaching ``kinds``, its episodes taking them in turn (``sim-so101-left-place``,
+    ``sim-so101-eval-pick-place-stack-sort``), its state in the layout every kind shares."""
+    if len(set(kinds)) != len(kinds) or not set(kinds) <= set(KINDS):
+        raise KeyError(f"{spec.name}-{'-'.join(kinds)}")
+    suffix = "-".join(kinds)
+    return replace(
+        spec,
+        name=f"{spec.name}-{suffix}",
+        repo_id=f"{spec.repo_id}_{suffix.replace('-', '_')}",
+        task=replace(spec.task, kind=kinds[0], shared_state=True),
+        kinds=kinds,
     )
 
 
@@ -143,6 +168,8 @@ OWNERS: tuple[DemoSpec, ...] = (
     DemoSpec("sim-so101-eval", "zk0/sim_so101_eval", SERVER_TASK, episodes=6, role="server"),
 )
 OWNER_SEED = 2026  # owner N's set-up comes from numpy's generator seeded with (OWNER_SEED, N)
+TASK_SEED = 2029  # ... and what it teaches in a multi-task federation from (TASK_SEED, N)
+TWO_TASKS = 0.25  # the share of generated owners who teach two tasks
 PUBLIC_SEED = 2028  # public set-up N's from (PUBLIC_SEED, N) (2027 is OUTSIDE_SEED)
 # What generated owners' rooms are drawn from: together with the hand-written owners', the span of
 # conditions a federation trains in (conditions outside it are drawn beyond every bound).
@@ -165,6 +192,15 @@ def sim_public(index: int) -> DemoSpec:
     federation has, as smolvla_base's community datasets). Drawn from the owners' distribution
     with a seed of its own, so no public set-up is an owner's or an evaluation condition."""
     return drawn_setup(PUBLIC_SEED, index, f"sim-so101-public-{index}", f"zk0/sim_so101_public_{index}")
+
+
+def drawn_kinds(index: int) -> tuple[str, ...]:
+    """What generated owner ``index`` teaches in a multi-task federation (``sim-so101-owner-<N>-task``):
+    one kind, or two for a quarter of owners, drawn with a seed of its own, so its room is
+    ``sim-so101-owner-<N>``'s."""
+    rng = np.random.default_rng([TASK_SEED, index])
+    count = 2 if rng.random() < TWO_TASKS else 1
+    return tuple(str(KINDS[int(k)]) for k in rng.choice(len(KINDS), size=count, replace=False))
 
 
 def drawn_setup(seed: int, index: int, name: str, repo_id: str) -> DemoSpec:
@@ -274,11 +310,35 @@ def _generated(match) -> DemoSpec:
     return with_cube_in_state(spec) if match["cube"] else spec
 
 
+def _multi_task(match) -> DemoSpec:
+    """A multi-task set-up: a hand-written owner's room, the server's, or generated owner N's,
+    teaching the kinds its name lists (or, ``-task``, those owner N draws)."""
+    owner = match["index"]
+    if match["kinds"] == "task":  # drawn: a generated owner's alone
+        if owner is None:
+            raise KeyError(match.string)
+        kinds = drawn_kinds(int(owner))
+    else:
+        kinds = tuple(match["kinds"].split("-"))
+    room = sim_owner(int(owner)) if owner is not None else SIM_SPECS[f"sim-so101-{match['base']}"]
+    spec = with_kinds(room, kinds)
+    return with_cube_in_state(spec) if match["cube"] else spec
+
+
+_CLIENTS = "|".join(o.name.removeprefix("sim-so101-") for o in OWNERS if o.role == "client")
+_ROOMS = "|".join(o.name.removeprefix("sim-so101-") for o in OWNERS)  # the clients' and the server's
+_KIND = f"(?:{'|'.join(KINDS)})"
+# sim-so101[-<owner>]-<owner|public|outside-<axis>>-<N>[-cube]: a generated set-up or condition
+GENERATED = (
+    rf"sim-so101-(?:(?P<at>{_CLIENTS})-)?"
+    rf"(?P<kind>owner|public|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?"
+)
+# sim-so101-<room>-<kind>[-<kind>...][-cube], sim-so101-owner-<N>-task[-cube]: a multi-task set-up
+MULTI_TASK = rf"sim-so101-(?P<base>{_ROOMS}|owner-(?P<index>\d+))-(?P<kinds>{_KIND}(?:-{_KIND})*|task)(?P<cube>-cube)?"
 SIM_SPECS: Catalogue[DemoSpec] = Catalogue(
     {spec.name: spec for owner in OWNERS for spec in (owner, with_cube_in_state(owner))},
-    rf"sim-so101-(?:(?P<at>{'|'.join(o.name.removeprefix('sim-so101-') for o in OWNERS if o.role == 'client')})-)?"
-    rf"(?P<kind>owner|public|{'|'.join(f'outside-{axis}' for axis in OUTSIDE)})-(?P<index>\d+)(?P<cube>-cube)?",
-    _generated,
+    {GENERATED: _generated, MULTI_TASK: _multi_task},
     "sim-so101-owner-<N>[-cube], sim-so101-public-<N>[-cube], "
-    "sim-so101[-<owner>]-outside-<dim|bright|tint|camera|table>-<N>[-cube]",
+    "sim-so101[-<owner>]-outside-<dim|bright|tint|camera|table>-<N>[-cube], "
+    "sim-so101-<owner|eval|owner-N>-<pick|place|stack|sort>[-<another kind>...][-cube], sim-so101-owner-<N>-task[-cube]",
 )

@@ -211,7 +211,7 @@ def synth_owner(index: int) -> SyntheticSpec:
 
 
 SPECS: Catalogue[SyntheticSpec] = Catalogue(
-    _HAND_WRITTEN, r"synth-owner-(?P<index>\d+)", lambda m: synth_owner(int(m["index"])), "synth-owner-<N>"
+    _HAND_WRITTEN, {r"synth-owner-(?P<index>\d+)": lambda m: synth_owner(int(m["index"]))}, "synth-owner-<N>"
 )
 
 
