@@ -40,6 +40,7 @@ from zk0.federation.personal import Personaliser, build_personaliser
 from zk0.federation.stats import stats_to_record
 from zk0.federation.wire import CLIENT, EVALUATE_ROUND, EVALUATION, KEEP_STATE, SHAPE, decode, encode
 from zk0.learning import client_state
+from zk0.learning.memory import room_for_another
 from zk0.learning.policy import (
     PolicyBundle,
     PolicyError,
@@ -48,7 +49,6 @@ from zk0.learning.policy import (
     set_trainable,
     trainable_tensors,
 )
-from zk0.learning.memory import room_for_another
 from zk0.learning.policy_types import name_of
 from zk0.learning.preflight import check_dataset, model_inputs
 from zk0.learning.training import LocalTrainer, evaluate
