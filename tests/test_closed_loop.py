@@ -19,6 +19,7 @@ from zk0.learning.rates import wilson
 
 REGISTRY = "configs/sim-registry.toml"
 CONDITIONS = "sim-so101-eval"
+TASKS_REGISTRY = "configs/sim-tasks-registry.toml"
 
 
 def untrained(policy: str):
@@ -87,3 +88,30 @@ def test_a_rollout_reports_its_rate_with_the_interval_and_writes_the_first_video
     assert set(metrics) >= {"reached-rate", "grasped-rate", "lifted-rate", "sim-eval-s"}
     assert (tmp_path / "videos" / "round_1.mp4").stat().st_size > 1000
     assert summary(again) | {"sim-eval-s": metrics["sim-eval-s"]} == metrics
+
+
+def test_a_multi_task_set_is_rolled_out_task_by_task_with_each_tasks_rate():
+    """The server's multi-task set: each task's episodes seeded alike, each task's rate with its
+    interval beside the rate over all of them, a sort given twice a pick-up's steps, and the console's
+    words naming the worst task."""
+    from zk0.learning.rates import per_task, rate_text, simulator_text
+    from zk0.sim.tasks import KINDS
+
+    registry = load_registry(TASKS_REGISTRY)
+    entry = registry.server
+    ensure_dataset(entry.name)
+    run = from_run_config({"registry": TASKS_REGISTRY, "server-eval-dataset": entry.name, "model": "tiny-128"})
+    bundle = build_policy(run, open_metadata(entry), entry, registry.model_cameras())
+    loop = ClosedLoop(entry.name, 2, 3, 128, 128, episode_length=12, batch=2)
+    try:
+        episodes = loop.rollouts(bundle)
+    finally:
+        loop.close()
+    assert [(e.kind, e.seed) for e in episodes] == [(kind, seed) for kind in KINDS for seed in (3, 4)]
+    assert [e.steps for e in episodes] == [12] * 6 + [24] * 2, "nothing solved; a sort may run twice as long"
+    metrics = summary(episodes)
+    assert metrics["episodes"] == 8 and list(per_task(metrics)) == list(KINDS)
+    assert all(per_task(metrics)[kind]["episodes"] == 2 for kind in KINDS)
+    assert simulator_text(metrics) == (
+        f"success {rate_text(0.0, 8)} in the simulator over 4 tasks (worst: pick, {rate_text(0.0, 2)})"
+    )

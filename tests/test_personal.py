@@ -113,5 +113,22 @@ def test_a_simulated_owner_rolls_both_models_out_in_its_own_conditions(tmp_path)
     for prefix in ("own-", "personal-own-"):
         assert metrics[f"{prefix}episodes"] == 2
         assert metrics[f"{prefix}success-low"] <= metrics[f"{prefix}success-rate"] <= metrics[f"{prefix}success-high"]
+    assert 0.0 < metrics["personal-own-p"] <= 1.0, "McNemar's test of the two on the same episodes"
     kept = json.loads((tmp_path / "models" / "personal" / "zk0_round.json").read_text())["evaluate"]
     assert kept["action-mse"] == 1.0 and kept["personal-own-episodes"] == 2
+
+
+def test_an_owner_is_told_which_model_to_run_by_success_beyond_the_noise():
+    """The model that succeeds more often where McNemar's test says the difference is beyond the noise;
+    otherwise the global model, which the federation goes on improving; nothing without both rollouts."""
+    from zk0.learning.rates import model_choice
+
+    rates = {"own-success-rate": 0.86, "personal-own-success-rate": 0.5}
+    assert model_choice(rates | {"personal-own-p": 0.0004}) == "run the global model (McNemar p 0.0004)"
+    assert model_choice({"own-success-rate": 0.52, "personal-own-success-rate": 0.9, "personal-own-p": 0.001}) == (
+        "run the personal model (McNemar p 0.001)"
+    )
+    assert model_choice(rates | {"personal-own-p": 0.06}) == (
+        "run the global model (no difference beyond the noise, McNemar p 0.06)"
+    )
+    assert model_choice(rates) == ""

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -275,6 +276,8 @@ def test_a_diffusion_federation_rolls_out_from_two_observations_and_loads_in_ler
     run_config = f"{sim_run_config('diffusion', rounds=1)} personal-steps=1 hf-repo-id='zk0-tests/diffusion'"
     run_dir, log = federate(flower_env, run_config, tmp_path / "outputs", "Diffusion Policy")
     assert "Personal models after round 1" in log and "success in the owner's own conditions" in log, log[-3000:]
+    said = r"client 0 \d+% \[\d+, \d+\] of 1 -> \d+% \[\d+, \d+\] of 1, run the global model \(no difference"
+    assert re.search(said, log), "with one episode each, no difference is beyond the noise"
     history = json.loads((run_dir / "server" / "metrics_history.json").read_text())
     for record in history["rounds"]:  # round 0 (the random start) and round 1
         judged = record["server-evaluate"]

@@ -184,9 +184,12 @@ def test_each_owners_personal_model_is_shown_beside_the_global_one_with_its_comm
     own = {"own-success-rate": 0.4, "own-success-low": 0.22, "own-success-high": 0.61, "own-episodes": 20.0}
     personal = {"personal-own-success-rate": 0.6, "personal-own-success-low": 0.39,
                 "personal-own-success-high": 0.78, "personal-own-episodes": 20.0}  # fmt: skip
-    for index in (0, 1):
+    for index, p in ((0, 0.4), (1, 0.01)):  # McNemar's p of the two on the same episodes
         history.add_client(1, "train", index, {"train-loss": 1.0, "num-examples": 16})
-        history.add_client(1, "evaluate", index, {"action-mse": 235.5, "personal-action-mse": 199.25, **own, **personal})
+        history.add_client(
+            1, "evaluate", index,
+            {"action-mse": 235.5, "personal-action-mse": 199.25, **own, **personal, "personal-own-p": p},
+        )  # fmt: skip
     history.add(1, "server-evaluate", {"policy-loss": 1.5, "action-mse": 300.0})
     history.write_round(1)
     snapshot = json.loads((run_dir / "server" / "metrics_history.json").read_text())
@@ -197,6 +200,11 @@ def test_each_owners_personal_model_is_shown_beside_the_global_one_with_its_comm
     assert cells["last evaluation action MSE"] == ["235.5", "235.5"] and cells["its personal model's action MSE"] == ["199.2", "199.25"]
     assert cells["global model's success in its own conditions"] == ["40% [22, 61] of 20", "0.4"]
     assert cells["personal model's success there"] == ["60% [39, 78] of 20", "0.6"]
+    choices = [dict(zip([c[0] for c in header], row, strict=True))["which model to run"][0] for row in rows]
+    assert choices == [
+        "run the global model (no difference beyond the noise, McNemar p 0.4)",
+        "run the personal model (McNemar p 0.01)",
+    ], "by success on the same episodes, though both personal models' held-out MSE is lower"
     assert any("--policy.path=clients/client_<i>/models/personal" in t for t in page.text)
 
 
@@ -264,3 +272,35 @@ def test_an_owner_who_joined_mid_run_is_shown_from_the_round_it_joined(tmp_path)
     header, *rows = page.tables["clients"]
     first = [c[0] for c in header].index("from round")
     assert [row[first][0] for row in rows] == ["1", "1", "2"]
+
+
+def test_a_multi_task_server_set_gets_a_task_by_round_table(tmp_path):
+    """Rounds whose closed-loop evaluation rolled the model out in several tasks: one row per
+    evaluated round, one column per task, each cell the success with its interval and episode count
+    as the JSON has it; a run of one task has no such table."""
+    from zk0.learning.closed_loop import Episode, summary
+
+    run_dir = tmp_path / "2026-12-07_12-00-00"
+    history = History(run_dir, {0: "sim-so101-left-pick-place-cube"}, {})
+    for number, wins in ((0, {"pick": 0, "sort": 0}), (1, {"pick": 3, "sort": 1})):
+        episodes = [
+            Episode(seed, kind, seed < wins[kind], False, False, False, 10, actions=None)
+            for kind in ("pick", "sort") for seed in range(4)
+        ]  # fmt: skip
+        history.add(number, "server-evaluate", {"action-mse": 10.0 - number, **summary(episodes)})
+        history.write_round(number)
+    recorded = json.loads((run_dir / "server" / "metrics_history.json").read_text())
+    assert recorded["rounds"][1]["server-evaluate"]["sort-success-rate"] == 0.25
+    page = Tables()
+    page.feed(write_report(run_dir, recorded, {}, {"round": 1, "action-mse": 9.0}, 1).read_text())
+    header, *rows = page.tables["tasks"]
+    assert [c[0] for c in header] == ["round", "pick", "sort"]
+    assert [[c[0] for c in row] for row in rows] == [
+        ["0", "0% [0, 49] of 4", "0% [0, 49] of 4"],
+        ["1", "75% [30, 95] of 4", "25% [5, 70] of 4"],
+    ]
+    assert float(rows[1][1][1]) == 0.75
+    one_task, _ = a_run(tmp_path / "one")
+    page = Tables()
+    page.feed(write_report(tmp_path / "one", one_task, {}, None, 3).read_text())
+    assert "tasks" not in page.tables

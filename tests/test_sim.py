@@ -276,21 +276,28 @@ def test_a_machine_that_cannot_render_says_so_in_one_sentence():
 
 
 @pytest.mark.e2e
-def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_model(flower_env, tmp_path):
-    """Two sim clients x 1 round through `flwr run`: success rates in the round JSON and history, a
-    video, a success chart, models/best, episodes cut at `sim-episode-length`; then lerobot's
-    `lerobot-eval` runs models/best on the env."""
+def test_a_federation_of_owners_of_different_tasks_is_judged_task_by_task_and_lerobot_evaluates_its_model(
+    flower_env, tmp_path
+):
+    """The multi-task registry's four owners x 1 round through `flwr run`, the server rolling the
+    model out in each of its set's four tasks: success rates, overall and per task, in the round JSON
+    and history, the console's round line naming the worst task, report.html's task-by-round table, a
+    video, a success chart, models/best, episodes cut at `sim-episode-length` (a sort's at twice it);
+    then lerobot's `lerobot-eval` runs models/best on the env, in the task it is given."""
+    from tests.test_report import Tables
     from zk0.deployment.simulation import cpu_federation, flwr_run
+    from zk0.sim.tasks import KINDS
 
-    for entry in load_registry(REGISTRY).entries:  # the server checks every client dataset before round 1
+    registry = load_registry(TASKS_REGISTRY)
+    for entry in registry.entries:  # the server checks every client dataset before round 1
         ensure_dataset(entry.name)
     out = tmp_path / "outputs"
     log = flwr_run(
         flower_env,
-        f"registry='{REGISTRY}' server-eval-dataset='sim-so101-eval' sim-eval-episodes=2 sim-episode-length=40 "
-        "model='tiny-128' "
+        f"registry='{TASKS_REGISTRY}' server-eval-dataset='{registry.server.name}' sim-eval-episodes=1 "
+        "sim-episode-length=40 model='tiny-128' "
         f"num-server-rounds=1 local-steps=2 batch-size=2 eval-batches=1 output-dir='{out}'",
-        cpu_federation(num_supernodes=2, actors=1),
+        cpu_federation(num_supernodes=4, actors=1),
     )
     runs = list(out.iterdir()) if out.exists() else []
     assert len(runs) == 1, log[-3000:]
@@ -299,17 +306,25 @@ def test_a_federation_with_closed_loop_evaluation_and_lerobots_own_eval_of_its_m
     for record in history["rounds"]:
         evaluation = record["server-evaluate"]
         assert {"success-rate", "reached-rate", "grasped-rate", "lifted-rate", "episode-length"} <= set(evaluation)
-        assert 0.0 <= evaluation["success-rate"] <= 1.0 and 1 <= evaluation["episode-length"] <= 40
-        assert evaluation["episodes"] == 2 and evaluation["success-low"] <= evaluation["success-rate"]
+        assert 0.0 <= evaluation["success-rate"] <= 1.0 and 1 <= evaluation["episode-length"] <= 50
+        assert evaluation["episodes"] == 4 and evaluation["success-low"] <= evaluation["success-rate"]
         assert evaluation["success-rate"] <= evaluation["success-high"] <= 1.0
+        for kind in KINDS:
+            assert evaluation[f"{kind}-episodes"] == 1, kind
+            assert 1 <= evaluation[f"{kind}-episode-length"] <= (80 if kind == "sort" else 40), kind
         assert (server / "videos" / f"round_{record['round']}.mp4").stat().st_size > 0
     assert (server / "success_rate.png").stat().st_size > 0
     best = runs[0] / "models" / "best"
-    assert "success-rate" in json.loads((best / "zk0_round.json").read_text())["server-evaluate"]
-    assert re.search(r"Round 1/1: .*success \d+% \[\d+, \d+\] of 2 in the simulator", log), log[-3000:]
+    assert "sort-success-rate" in json.loads((best / "zk0_round.json").read_text())["server-evaluate"]
+    pattern = r"Round 1/1: .*success \d+% \[\d+, \d+\] of 4 in the simulator over 4 tasks \(worst: \w+, \d+% \[\d+, \d+\] of 1\)"
+    assert re.search(pattern, log), log[-3000:]
+    page = Tables()
+    page.feed((runs[0] / "report.html").read_text())
+    assert [c[0] for c in page.tables["tasks"][0]] == ["round", *KINDS] and len(page.tables["tasks"]) == 3
 
     done = subprocess.run(
         [str(Path(sys.executable).parent / "lerobot-eval"), f"--policy.path={best}", "--env.type=zk0_so101",
+         f"--env.conditions={registry.server.name}", "--env.kind=stack",
          "--env.episode_length=20", "--eval.n_episodes=1", "--eval.batch_size=1", "--policy.device=cpu",
          f"--rename_map={json.dumps(CAMERA_MAP)}",
          f"--output_dir={tmp_path / 'lerobot-eval'}"],

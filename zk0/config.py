@@ -107,7 +107,7 @@ class RunConfig:
     lora_full_modules: str = LORA_FULL_MODULES  # comma-separated, trained in full next to the adapters; "" = none
     lora_average: str = "b"  # b: A frozen at its seeded start, B trained and averaged; ab: both trained and averaged
     sim_eval_episodes: int = 0  # closed-loop episodes in the simulator per evaluated round (zk0.sim); 0 = off
-    sim_episode_length: int = 300  # steps before a closed-loop episode ends unsolved (lerobot's env.episode_length)
+    sim_episode_length: int = 300  # steps before a closed-loop episode ends unsolved (lerobot's env.episode_length; a sort's: twice)
     personal_steps: int = 0  # each client fine-tunes the global model this many steps when it evaluates (zk0.federation.personal)
     personal_mu: float = 0.0  # the personal model's proximal pull toward the global one while it fine-tunes
     personal_lr: float = 0.0  # that fine-tuning's peak learning rate; 0 = a quarter of lr

@@ -18,7 +18,7 @@ from jinja2 import Environment, StrictUndefined
 from markupsafe import Markup
 
 from zk0.artifacts.run_folder import CHARTS, SIM_CHARTS, clients_trained, write_text
-from zk0.learning.rates import success_text
+from zk0.learning.rates import model_choice, per_task, success_text
 from zk0.sim.tasks import SIM_SPECS, beyond_span
 
 REPORT_FILE = "report.html"
@@ -76,6 +76,19 @@ task as in docs/robot-owners.md):</p>
 {% endfor %}
 </table>
 
+{% if tasks %}
+<h2>Success per task</h2>
+<p>The global model rolled out in each task the server's set teaches, on the same seeded episodes every
+round (success [95% interval] of episodes).</p>
+<table id="tasks">
+<tr><th>round</th>{% for kind in tasks %}<th>{{ kind }}</th>{% endfor %}</tr>
+{% for row in task_rows %}
+<tr{% if best and row.round == best.round %} class="best"{% endif %}><td>{{ row.round }}</td>
+{% for kind in tasks %}{{ cell(row.cells[kind]) }}{% endfor %}</tr>
+{% endfor %}
+</table>
+{% endif %}
+
 {% if charts %}
 <h2>Charts</h2>
 <div class="charts">
@@ -92,11 +105,12 @@ task as in docs/robot-owners.md):</p>
 <tr><th>client</th><th class="text">dataset</th><th>from round</th><th>rounds trained</th><th>samples trained</th>
 <th>last train loss</th><th>last evaluation action MSE</th>
 {% if personal %}<th>its personal model's action MSE</th><th>global model's success in its own conditions</th>
-<th>personal model's success there</th>{% endif %}<th>refusals</th></tr>
+<th>personal model's success there</th><th class="text">which model to run</th>{% endif %}<th>refusals</th></tr>
 {% for client in clients %}
 <tr><td>{{ client.index }}</td><td class="text">{{ client.dataset }}</td><td>{{ client.first }}</td><td>{{ client.rounds }}</td>
 {{ cell(client.samples) }}{{ cell(client.loss) }}{{ cell(client.mse) }}
-{% if personal %}{{ cell(client.personal_mse) }}{{ cell(client.own_success) }}{{ cell(client.personal_success) }}{% endif %}
+{% if personal %}{{ cell(client.personal_mse) }}{{ cell(client.own_success) }}{{ cell(client.personal_success) }}
+<td class="text">{{ client.choice or "-" }}</td>{% endif %}
 <td>{{ client.refusals|length }}</td></tr>
 {% endfor %}
 </table>
@@ -185,6 +199,18 @@ def round_row(record: dict) -> dict:
     return {"round": record["round"], "cells": values}
 
 
+def task_rows(history: dict) -> tuple[list[str], list[dict]]:
+    """The tasks a multi-task server set teaches, and each evaluated round's success in each."""
+    judged = [(r["round"], per_task(r.get("server-evaluate", {}))) for r in history["rounds"]]
+    judged = [(number, tasks) for number, tasks in judged if tasks]
+    kinds = list(dict.fromkeys(kind for _, tasks in judged for kind in tasks))
+    rows = [
+        {"round": number, "cells": {k: (t[k]["success-rate"], success_text(t[k])) if k in t else None for k in kinds}}
+        for number, t in judged
+    ]
+    return kinds, rows
+
+
 def epsilon_spent(record: dict) -> float | None:
     """The privacy spent once a round's model was released: owner-level DP's epsilon, or with
     record-level DP the largest any owner's demonstrations have spent (each owner's accountant)."""
@@ -267,6 +293,7 @@ def client_rows(history: dict) -> list[dict]:
                 "personal_mse": personal[-1]["personal-action-mse"] if personal else None,
                 "own_success": _own_success(personal[-1], "own-") if personal else None,
                 "personal_success": _own_success(personal[-1], "personal-own-") if personal else None,
+                "choice": model_choice(personal[-1]) if personal else "",
                 "refusals": refusals,
             }
         )
@@ -324,6 +351,7 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
     best_path = run_dir / "models" / "best"
     columns = [{"key": k, "title": t} for k, t in ROUND_COLUMNS if any(r["cells"][k] is not None for r in rounds)]
     clients = client_rows(history)
+    tasks, by_task = task_rows(history)
     return _TEMPLATE.render(
         name=run_dir.name,
         status=status,
@@ -333,6 +361,8 @@ def render(run_dir: Path, history: dict, config: dict, best: dict | None, num_ro
         rollout=ROLLOUT.replace("POLICY", str(best_path)),
         round_columns=columns,
         rounds=rounds,
+        tasks=tasks,
+        task_rows=by_task,
         charts=_charts(run_dir / "server"),
         videos=_videos(run_dir, best, last),
         clients=clients,

@@ -25,8 +25,9 @@ from torch.utils.data import DataLoader
 from zk0.artifacts.run_folder import PERSONAL, save_checkpoint
 from zk0.config import RunConfig
 from zk0.data.loaders import DatasetSplit, train_loader
-from zk0.learning.closed_loop import ClosedLoop
+from zk0.learning.closed_loop import ClosedLoop, summary
 from zk0.learning.policy import PolicyBundle, rng_devices, set_trainable, snapshot
+from zk0.learning.rates import mcnemar
 from zk0.learning.training import LocalTrainer, evaluate
 from zk0.sim.tasks import SIM_SPECS
 
@@ -44,14 +45,16 @@ class Personaliser:
     def __call__(self, evaluated_round: int, client_dir: Path, global_metrics: dict) -> dict[str, float]:
         """Fine-tune the global model now in the policy, judge and keep it, and put the global model
         back; the personal model's metrics (``personal-*``), and in simulated conditions both
-        models' success in this owner's own set-up."""
+        models' success in this owner's own set-up on the same seeded episodes, with McNemar's
+        p-value for their difference (``personal-own-p``)."""
         started = time.perf_counter()
         bundle, run = self.trainer.bundle, self.run
         global_weights = snapshot(bundle)
         metrics: dict[str, float] = {}
         with torch.random.fork_rng(devices=rng_devices(bundle)):
             if self.closed_loop:
-                metrics |= own_conditions(self.closed_loop(bundle), "")
+                global_episodes = self.closed_loop.rollouts(bundle)
+                metrics |= own_conditions(summary(global_episodes), "")
             self.trainer.optimizer.state.clear()  # each fine-tune starts afresh from the global model
             self.trainer.restore(evaluated_round * run.personal_steps, None)  # a data position of its own
             trained = self.trainer.fit(run.personal_steps, run.personal_mu, global_step=0)
@@ -61,7 +64,11 @@ class Personaliser:
             metrics |= {f"personal-{key}": personal[key] for key in ("action-mse", "policy-loss")}
             metrics["personal-train-loss"] = trained["train-loss"]
             if self.closed_loop:
-                metrics |= own_conditions(self.closed_loop(bundle), "personal-")
+                personal_episodes = self.closed_loop.rollouts(bundle)
+                metrics |= own_conditions(summary(personal_episodes), "personal-")
+                metrics["personal-own-p"] = mcnemar(
+                    [e.success for e in personal_episodes], [e.success for e in global_episodes]
+                )
             kept = {**global_metrics, **metrics}  # the global model's figures beside the personal one's
             save_checkpoint(bundle, client_dir, evaluated_round, {}, PERSONAL, kept, evaluated_by="evaluate")
         set_trainable(bundle, global_weights)

@@ -45,7 +45,7 @@ from zk0.federation import stopping
 from zk0.federation.stats import stats_from_record, with_merged_stats
 from zk0.federation.wire import CLIENT
 from zk0.learning.policy import PolicyBundle, set_trainable
-from zk0.learning.rates import success_text
+from zk0.learning.rates import model_choice, simulator_text, success_text
 
 LATE_WARNING = 3  # rounds in a row a client misses the deadline before the server warns about it
 STRAGGLER = 0.5  # with a time budget, a client that took less than this share of the fastest one's steps
@@ -139,7 +139,9 @@ class RoundArtifacts:
         own = {i: e for i, e in scored.items() if "own-success-rate" in e}
         if own:
             rates = ", ".join(
-                f"client {i} {success_text(e, 'own-')} -> {success_text(e, 'personal-own-')}" for i, e in own.items()
+                f"client {i} {success_text(e, 'own-')} -> {success_text(e, 'personal-own-')}"
+                + (f", {choice}" if (choice := model_choice(e)) else "")
+                for i, e in own.items()
             )
             line += f"; success in the owner's own conditions: {rates}"
         return line
@@ -309,7 +311,7 @@ class RoundArtifacts:
     @staticmethod
     def starting_line(evaluation: dict) -> str:
         """Round 0's line: how the model the run starts from does on the server's evaluation."""
-        success = f"success {success_text(evaluation)} in the simulator, " if "success-rate" in evaluation else ""
+        success = f"{simulated}, " if (simulated := simulator_text(evaluation)) else ""
         return f"Round 0 (the starting model): {success}server action MSE {evaluation['action-mse']:.4g}"
 
     def checkpoint_bundle(self, client_stats: dict[int, dict]) -> PolicyBundle:
@@ -338,7 +340,7 @@ class RoundArtifacts:
             + (f"{stragglers}, " if (stragglers := stragglers_text(record, steps, self.run)) else "")
             + f"train loss {'-' if loss is None else f'{loss:.4g}'}, "
             f"server action MSE {'not evaluated' if mse is None else f'{mse:.4g}'}, "
-            + (f"success {success_text(server)} in the simulator, " if "success-rate" in server else "")
+            + (f"{simulated}, " if (simulated := simulator_text(server)) else "")
             + (f"{privacy}, " if (privacy := privacy_text(record, self.run)) else "")
             + f"{per_round:.1f} s/round, about {left // 60}m {left % 60:02d}s left"
             + (f", best round {self.best['round']}" if self.best else "")

@@ -37,7 +37,7 @@ from zk0.learning.policy import PolicyBundle, rng_devices
 from zk0.learning.rates import rate_metrics
 from zk0.sim.env import PickCubeEnv
 from zk0.sim.lerobot_env import PickCubeEnvConfig
-from zk0.sim.tasks import SIM_SPECS
+from zk0.sim.tasks import EPISODE_S, SIM_SPECS
 
 GRADES = ("reached", "grasped", "lifted")
 BATCH = 10  # episodes stepped together, one chunk inference for all of them (lerobot's eval.batch_size)
@@ -48,6 +48,7 @@ class Episode:
     """How one seeded episode went, and the actions it took (lerobot units)."""
 
     seed: int
+    kind: str  # the task it was asked to do
     success: bool
     reached: bool
     grasped: bool
@@ -57,8 +58,8 @@ class Episode:
 
 
 class ClosedLoop:
-    """The seeded episodes of one set of conditions; the envs are built once for the run, and
-    ``close()`` releases their renderers."""
+    """The seeded episodes of one set of conditions (of each task, in a multi-task set-up); the envs
+    are built once for the run, and ``close()`` releases their renderers."""
 
     def __init__(
         self, conditions: str, episodes: int, seed: int, height: int, width: int,
@@ -68,42 +69,53 @@ class ClosedLoop:
             conditions=conditions, observation_height=height, observation_width=width, episode_length=episode_length
         )
         self.env_preprocessor, self.env_postprocessor = self.config.get_env_processors()
-        task = SIM_SPECS[conditions].task
-        self.envs = [PickCubeEnv(task, height, width) for _ in range(min(batch, episodes))]
+        tasks = SIM_SPECS[conditions].tasks
+        self.envs = {
+            task.kind: [PickCubeEnv(task, height, width) for _ in range(min(batch, episodes))] for task in tasks
+        }
         self.episodes, self.seed = episodes, seed
 
+    def episode_length(self, kind: str) -> int:
+        """Steps before an episode of ``kind`` ends unsolved: the run's, for as long as a pick-up may
+        run (a sort, two carries, gets twice as many)."""
+        return round(self.config.episode_length * EPISODE_S[kind] / EPISODE_S["pick"])
+
     def __call__(self, bundle: PolicyBundle, video: Path | None = None) -> dict[str, float]:
-        """Success with its interval, graded rates and mean length over the seeded episodes; the
-        first one's video written to ``video`` when given."""
+        """Success with its interval, graded rates and mean length over the seeded episodes (and
+        each task's, in a multi-task set-up); the first one's video written to ``video`` when given."""
         started = time.perf_counter()
         metrics = summary(self.rollouts(bundle, video))
         metrics["sim-eval-s"] = time.perf_counter() - started
         return metrics
 
     def rollouts(self, bundle: PolicyBundle, video: Path | None = None) -> list[Episode]:
-        """Every episode, in seed order. The policy's noise is drawn from a generator seeded with the
-        run's seed (and the caller's random state left as it was), so a model meets the same noise
-        on the same episodes every time it is evaluated. The policy acts in eval mode, as in
-        lerobot's ``eval_policy`` (no dropout), and is left in the mode it was in."""
+        """Every episode, task by task, in seed order (each task's episodes seeded alike). The
+        policy's noise is drawn from a generator seeded with the run's seed (and the caller's random
+        state left as it was), so a model meets the same noise on the same episodes every time it is
+        evaluated. The policy acts in eval mode, as in lerobot's ``eval_policy`` (no dropout), and is
+        left in the mode it was in."""
         frames: list[np.ndarray] | None = [] if video else None
-        batch = len(self.envs)
         done: list[Episode] = []
         training = bundle.policy.training
         bundle.policy.eval()
         with torch.random.fork_rng(devices=rng_devices(bundle)):
             torch.manual_seed(self.seed)
-            for first in range(0, self.episodes, batch):
-                seeds = range(self.seed + first, self.seed + min(first + batch, self.episodes))
-                done += self._batch(bundle, list(seeds), frames if first == 0 else None)
+            for envs in self.envs.values():
+                for first in range(0, self.episodes, len(envs)):
+                    seeds = range(self.seed + first, self.seed + min(first + len(envs), self.episodes))
+                    done += self._batch(bundle, envs, list(seeds), frames if not done else None)
         bundle.policy.train(training)  # ACT's predict_action_chunk itself switches to eval mode
         if video and frames:
             video.parent.mkdir(parents=True, exist_ok=True)
             write_video(str(video), np.stack(frames), self.config.fps)
         return done
 
-    def _batch(self, bundle: PolicyBundle, seeds: list[int], frames: list[np.ndarray] | None) -> list[Episode]:
-        """One batch of episodes stepped together until each has succeeded or run out of time."""
-        envs = self.envs[: len(seeds)]
+    def _batch(
+        self, bundle: PolicyBundle, envs: list[PickCubeEnv], seeds: list[int], frames: list[np.ndarray] | None
+    ) -> list[Episode]:
+        """One batch of episodes of one task stepped together until each has succeeded or run out of time."""
+        envs = envs[: len(seeds)]
+        kind, length = envs[0].task.kind, self.episode_length(envs[0].task.kind)
         bundle.policy.reset()
         observations = [env.reset(seed=seed)[0] for env, seed in zip(envs, seeds, strict=True)]
         if frames is not None:
@@ -112,7 +124,7 @@ class ClosedLoop:
         actions: list[list[np.ndarray]] = [[] for _ in envs]
         chunk: deque[torch.Tensor] = deque()
         history = getattr(bundle.policy.config, "n_obs_steps", 1) > 1
-        for step in range(self.config.episode_length):
+        for step in range(length):
             if all(e is not None for e in ended):
                 break
             if history or not chunk:  # only now is what the cameras see read
@@ -131,8 +143,8 @@ class ClosedLoop:
                 actions[i].append(action[i])
                 if frames is not None and i == 0:
                     frames.append(env.render())  # the video's episode: every step, as lerobot records it
-                if success or env.steps >= self.config.episode_length:
-                    ended[i] = Episode(seeds[i], success, **{g: env.outcome[g] for g in GRADES}, steps=env.steps,
+                if success or env.steps >= length:
+                    ended[i] = Episode(seeds[i], kind, success, **{g: env.outcome[g] for g in GRADES}, steps=env.steps,
                                        actions=np.stack(actions[i]))  # fmt: skip
         return [e for e in ended if e is not None]
 
@@ -165,12 +177,24 @@ class ClosedLoop:
         return self.env_postprocessor({ACTION: action})[ACTION].to("cpu").numpy()
 
     def close(self) -> None:
-        for env in self.envs:
-            env.close()
+        for envs in self.envs.values():
+            for env in envs:
+                env.close()
 
 
 def summary(episodes: Sequence[Episode]) -> dict[str, float]:
-    """Success rate with its 95% interval and episode count, each grade's rate, the mean length."""
+    """Success rate with its 95% interval and episode count, each grade's rate, the mean length; in
+    a multi-task set-up the same for each task (``place-success-rate``, ``place-episodes``, ...)
+    beside those over every episode."""
+    metrics = _rates(episodes)
+    kinds = list(dict.fromkeys(e.kind for e in episodes))
+    if len(kinds) > 1:
+        for kind in kinds:
+            metrics |= {f"{kind}-{k}": v for k, v in _rates([e for e in episodes if e.kind == kind]).items()}
+    return metrics
+
+
+def _rates(episodes: Sequence[Episode]) -> dict[str, float]:
     metrics = rate_metrics([e.success for e in episodes])
     metrics |= {f"{grade}-rate": float(np.mean([getattr(e, grade) for e in episodes])) for grade in GRADES}
     metrics["episode-length"] = float(np.mean([e.steps for e in episodes]))

@@ -15,6 +15,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from zk0.sim.tasks import KINDS
+
 Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
 
 
@@ -52,6 +54,32 @@ def success_text(metrics: dict, prefix: str = "") -> str:
     return rate_text(rate, episodes) if episodes else f"{100 * rate:.0f}%"
 
 
+def per_task(metrics: dict, prefix: str = "") -> dict[str, dict]:
+    """Each task's figures in a multi-task closed-loop evaluation's metrics (``place-success-rate``
+    -> ``{"place": {"success-rate": ...}}``), in the order of ``KINDS``; empty for a single task."""
+    return {
+        kind: {
+            key.removeprefix(f"{prefix}{kind}-"): value
+            for key, value in metrics.items()
+            if key.startswith(f"{prefix}{kind}-")
+        }
+        for kind in KINDS
+        if f"{prefix}{kind}-success-rate" in metrics
+    }
+
+
+def simulator_text(metrics: dict) -> str:
+    """``success 45% [36, 55] of 100 in the simulator``, and in a multi-task evaluation the task it
+    does worst: what a console line says of a closed-loop evaluation (nothing without one)."""
+    if "success-rate" not in metrics:
+        return ""
+    text = f"success {success_text(metrics)} in the simulator"
+    if tasks := per_task(metrics):
+        kind, worst = min(tasks.items(), key=lambda task: task[1]["success-rate"])
+        text += f" over {len(tasks)} tasks (worst: {kind}, {success_text(worst)})"
+    return text
+
+
 def mcnemar(first: Sequence[bool], second: Sequence[bool]) -> float:
     """Two-sided exact McNemar p-value for two models' outcomes on the same episodes, in order.
 
@@ -76,6 +104,20 @@ def compare_text(first: Sequence[bool], second: Sequence[bool]) -> str:
     p = mcnemar(first, second)
     verdict = "beyond the noise" if p < 0.05 else "within the noise"
     return f"{difference:+.0f} points ({verdict}, McNemar p = {p:.2g})"
+
+
+def model_choice(metrics: dict) -> str:
+    """Which of an owner's two models to run, by their success in the owner's own conditions on the
+    same seeded episodes (``own-*``, ``personal-own-*`` and McNemar's ``personal-own-p``), never by
+    held-out MSE: the one that succeeds more often where the difference is beyond the noise, else
+    the global model, which the federation goes on improving. Empty without both rollouts."""
+    p = metrics.get("personal-own-p")
+    if p is None:
+        return ""
+    if p < 0.05:
+        better = "personal" if metrics["personal-own-success-rate"] > metrics["own-success-rate"] else "global"
+        return f"run the {better} model (McNemar p {p:.2g})"
+    return f"run the global model (no difference beyond the noise, McNemar p {p:.2g})"
 
 
 def bootstrap(
