@@ -78,7 +78,7 @@ def test_fewer_cameras_use_smolvla_empty_camera_slots(registry):
         ("[tool.zk0.owners]\ncount = 2.5\n", "count = 2.5"),
         (
             '[tool.zk0.owners]\ncount = 4\nkind = "robots"\n',
-            "kind = 'robots'; expected one of ['synth', 'sim', 'sim-cube']",
+            "kind = 'robots'; expected one of ['synth', 'sim', 'sim-cube', 'sim-tasks', 'sim-tasks-cube']",
         ),
         ("[tool.zk0.owners]\ncount = 4\nseed = 1\n", "unknown key 'seed'"),
         ("[tool.zk0]\nowners = 16\n", "[tool.zk0.owners] must be a table"),
@@ -102,6 +102,8 @@ def test_bad_registry_files_fail_with_one_sentence(tmp_path, table, needle):
         ("synth", "synth-owner-{}", "synth-so100-eval"),
         ("sim", "sim-so101-owner-{}", "sim-so101-eval"),
         ("sim-cube", "sim-so101-owner-{}-cube", "sim-so101-eval-cube"),
+        ("sim-tasks", "sim-so101-owner-{}-task", "sim-so101-eval-pick-place-stack-sort"),
+        ("sim-tasks-cube", "sim-so101-owner-{}-task-cube", "sim-so101-eval-pick-place-stack-sort-cube"),
     ],
 )
 def test_one_table_makes_many_owners_and_their_server_set(tmp_path, kind, client, server):

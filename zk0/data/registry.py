@@ -6,9 +6,10 @@ typed ``DatasetEntry`` objects, read and validated once. A simulation client tak
 Nth client entry for partition id N; a SuperNode can name its entry in its node config.
 
 A federation of many owners is one table, ``[tool.zk0.owners]`` (``count = 64``, ``kind =
-"synth"``, ``"sim"`` or ``"sim-cube"``): owners ``<kind>-owner-0`` to ``-63``, each with its own
-conditions drawn from a seeded distribution (zk0.data.assets.datasets.synth_owner,
-zk0.sim.tasks.sim_owner), listed before the file's own tables, and the kind's server
+"synth"``, ``"sim"``, ``"sim-cube"``, ``"sim-tasks"`` or ``"sim-tasks-cube"``): owners
+``<kind>-owner-0`` to ``-63``, each with its own conditions (and, ``sim-tasks``, what it teaches)
+drawn from a seeded distribution (zk0.data.assets.datasets.synth_owner, zk0.sim.tasks.sim_owner,
+zk0.sim.tasks.drawn_kinds), listed before the file's own tables, and the kind's server
 evaluation set unless the file names a server dataset itself.
 """
 
@@ -34,6 +35,9 @@ OWNER_KINDS = {
     "synth": ("synth-owner-{}", "synth-so100-eval"),
     "sim": ("sim-so101-owner-{}", "sim-so101-eval"),
     "sim-cube": ("sim-so101-owner-{}-cube", "sim-so101-eval-cube"),
+    # each owner teaching the tasks it draws (zk0.sim.tasks.drawn_kinds); the server's set, all four
+    "sim-tasks": ("sim-so101-owner-{}-task", "sim-so101-eval-pick-place-stack-sort"),
+    "sim-tasks-cube": ("sim-so101-owner-{}-task-cube", "sim-so101-eval-pick-place-stack-sort-cube"),
 }
 PUBLIC_KINDS = {"sim": "sim-so101-public-{}", "sim-cube": "sim-so101-public-{}-cube"}  # [tool.zk0.owners] public = K
 
