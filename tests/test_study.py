@@ -6,6 +6,7 @@ import argparse
 import copy
 import json
 import math
+import re
 
 import pytest
 import torch
@@ -331,3 +332,37 @@ def test_the_policy_trains_every_model_and_folders_from_before_the_key_are_smolv
         f"[zk0] --seeds-from {str(earlier)!r} was trained with policy = 'smolvla', not 'diffusion'; its seeds cannot "
         "be tabled with these.\n"
     )
+
+
+def test_a_multi_task_set_is_tabled_task_by_task_for_each_seed_and_over_the_seeds(capsys):
+    """The sim-tasks setting's server set holds two tasks here (five episodes each): each model's
+    success in each task with its interval, per seed from that seed's outcomes and over the seeds
+    from every seed's; a set of one task gets no such table."""
+    from zk0.bench.study import SETTINGS, SIM_SETTINGS
+    from zk0.bench.study_tables import over_seeds, print_over_seeds, print_tasks, task_rates
+
+    assert "sim-tasks" in SIM_SETTINGS
+    assert load_registry(SETTINGS["sim-tasks"]).server.name == "sim-so101-eval-pick-place-stack-sort-cube"
+    kinds = ["place"] * 5 + ["sort"] * 5
+
+    def run(seed: int, place: int, sort: int) -> dict:
+        outcomes = [1] * place + [0] * (5 - place) + [1] * sort + [0] * (5 - sort)
+        rolled = {"outcomes": outcomes, "kinds": kinds}
+        success = {
+            "FedAvg": {"client 0": {"outcomes": [1, 0]}, "server": rolled},
+            "centralised": {"client 0": {"outcomes": [1, 1]}, "server": {"outcomes": [1] * 10, "kinds": kinds}},
+        }
+        return {"seed": seed, "matrix": {"FedAvg": {"server": {"action-mse": 1.0}}}, "success": success}
+
+    first = run(0, place=4, sort=1)
+    assert task_rates(first["success"]["FedAvg"]["server"])["sort"]["success-rate"] == 0.2
+    assert task_rates(first["success"]["FedAvg"]["client 0"]) == {}
+    print_tasks(first["success"])
+    out = capsys.readouterr().out
+    assert "success in each task of server's conditions" in out and "client 0's conditions" not in out
+    assert re.search(r"FedAvg\s+80 \[38, 96\]\s+20 \[4, 62\]", out), out
+    result = over_seeds([first, run(1, place=2, sort=3)], clients=1)
+    tasks = result["success"]["FedAvg"]["server"]["tasks"]
+    assert (tasks["place"]["success-rate"], tasks["sort"]["success-rate"], tasks["sort"]["episodes"]) == (0.6, 0.4, 10)
+    print_over_seeds("sim-tasks", {**result, "seeds": [0, 1]})
+    assert re.search(r"centralised\s+100 \[72, 100\]\s+100 \[72, 100\]", capsys.readouterr().out)

@@ -222,7 +222,8 @@ def closed_loop_all(
     rolled out with an evaluation set's processors: column -> (evaluation set, conditions).
     {model: {column: rates}}, each with its interval and its per-episode ``outcomes`` (1 = success,
     in seed order: every model meets the same ``episodes`` episodes, seeded from ``seed``, so two
-    can be compared pairwise). Each rollout's figures are kept in
+    can be compared pairwise; in a multi-task set's conditions, task by task, with the ``kinds``
+    each outcome is of). Each rollout's figures are kept in
     ``stash`` as it finishes, or taken from it; a set whose rollouts are all kept builds no envs.
     Episodes end unsolved after ``episode_length`` steps (a length other than the default is kept
     apart in the stash)."""
@@ -250,7 +251,12 @@ def closed_loop_all(
                 def rollout(weights: Weights = models[label], bundle=bundle, loop=loop) -> dict:
                     set_trainable(bundle, weights)
                     rolled = loop.rollouts(bundle)
-                    return {**summary(rolled), "outcomes": [int(e.success) for e in rolled]}
+                    kinds = [e.kind for e in rolled]  # a multi-task set's: which task each outcome is of
+                    return {
+                        **summary(rolled),
+                        "outcomes": [int(e.success) for e in rolled],
+                        **({"kinds": kinds} if len(set(kinds)) > 1 else {}),
+                    }
 
                 kept = stash.figures(name(column, label), rollout) if stash is not None else rollout()
                 matrix[label][column] = kept

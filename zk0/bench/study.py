@@ -34,9 +34,11 @@ The ``sim`` setting trains on the simulated SO-101 owners' demonstrations (confi
 episodes) in the server's span of conditions and in each client's own: success, not only MSE.
 ``sim-cube`` is the same with the target cube's xy in every state (configs/sim-cube-registry.toml): a
 privileged setting in which a centrally trained policy succeeds often enough for the federation's
-success to be compared with it.
+success to be compared with it. ``sim-tasks`` is privileged alike, its owners teaching different
+tasks (configs/sim-tasks-registry.toml): every model's success is also tabled task by task in each
+set whose conditions hold several tasks (the server's, and an owner's who teaches two).
 
-    python -m zk0.bench study [--settings mild noniid sim sim-cube] [--rounds 8] [--local-steps 20]
+    python -m zk0.bench study [--settings mild noniid sim sim-cube sim-tasks] [--rounds 8] [--local-steps 20]
         [--clients 4] [--model tiny] [--lr 8e-3] [--federation-lr LR] [--federations FedProx FedAvg Nesterov ...]
         [--server-lr LR] [--server-momentum M] [--demos 30] [--sim-episodes 10] [--personal-steps N]
         [--output-dir outputs/bench-study]
@@ -88,8 +90,10 @@ SETTINGS = {
     "noniid": str(PROJECT_ROOT / "configs" / "noniid-registry.toml"),
     "sim": str(PROJECT_ROOT / "configs" / "sim-registry.toml"),  # judged by success rate in the simulator too
     "sim-cube": str(PROJECT_ROOT / "configs" / "sim-cube-registry.toml"),  # the same, told where the cube is
+    # owners who teach different tasks, told where the cubes and their places are: success task by task
+    "sim-tasks": str(PROJECT_ROOT / "configs" / "sim-tasks-registry.toml"),
 }
-SIM_SETTINGS = ("sim", "sim-cube")
+SIM_SETTINGS = ("sim", "sim-cube", "sim-tasks")
 
 
 def study_run(args: argparse.Namespace, registry: str, seed: int = RunConfig.seed) -> RunConfig:

@@ -127,6 +127,7 @@ def print_success(result: dict) -> None:
     for label, row in success.items():
         cells = [rate_cell(row[c]) if c in row else "-" for c in columns]
         print(f"{label:<12}" + "".join(f"{cell:>14}" for cell in cells))
+    print_tasks(success)
     for column in columns[:-1]:
         owner = column.split()[-1]
         models = [*federations(success), f"personal {owner}"]
@@ -145,6 +146,31 @@ def print_success(result: dict) -> None:
         print(f"personal models against each owner alone, in the owner's own conditions: "
               f"{s['personal-minus-alone-points']:+.0f} points on average (target >= +20); / centralised there: "
               + ("n/a (centralised 0%)" if ratio is None else f"{ratio:.2f} (target >= 0.95)"))  # fmt: skip
+
+
+def task_rates(rates: dict) -> dict[str, dict]:
+    """A multi-task set's rollout, task by task: each task's success with its interval (from the
+    outcomes and the ``kinds`` they are of, or as ``over_seeds`` pooled them); empty for one task."""
+    if "tasks" in rates:
+        return rates["tasks"]
+    if "kinds" not in rates:
+        return {}
+    return {
+        kind: rate_metrics([o for o, k in zip(rates["outcomes"], rates["kinds"], strict=True) if k == kind])
+        for kind in dict.fromkeys(rates["kinds"])
+    }
+
+
+def print_tasks(success: dict[str, dict[str, dict]]) -> None:
+    """For each set whose conditions hold several tasks, every model's success in each task."""
+    columns = list(dict.fromkeys(c for row in success.values() for c, rates in row.items() if task_rates(rates)))
+    for column in columns:
+        rows = {label: task_rates(row[column]) for label, row in success.items() if column in row}
+        kinds = list(next(iter(rows.values())))
+        print(f"success in each task of {column}'s conditions, % [95% interval]")
+        print(f"{'':<22}" + "".join(f"{k:>20}" for k in kinds))
+        for label, tasks in rows.items():
+            print(f"{label:<22}" + "".join(f"{rate_cell(tasks[k]):>20}" for k in kinds))
 
 
 def rate_cell(rates: dict) -> str:
@@ -174,6 +200,9 @@ def over_seeds(runs: list[dict], clients: int) -> dict:
             **pooled, "episodes": len(rows[0]), "seeds": len(rows),
             "seed-min": min(rates), "seed-max": max(rates), "per-seed": rates,
         }  # fmt: skip
+        if kinds := first["success"][label][column].get("kinds"):  # each task over every seed's episodes
+            every = {"outcomes": sum(rows, []), "kinds": kinds * len(rows)}
+            success[label][column]["tasks"] = task_rates(every)
     result["success"] = success
     result["success-summary"] = targets_over_seeds(outcomes, clients, federations(first["success"]))
     return result
@@ -232,6 +261,7 @@ def print_over_seeds(setting: str, result: dict) -> None:
     for label, row in success.items():
         cells = [seed_cell(row[c]) if c in row else "-" for c in columns]
         print(f"{label:<22}" + "".join(f"{cell:>20}" for cell in cells))
+    print_tasks(success)
     t = result["success-summary"]
     for label, f in t["vs-centralised"].items():
         print(f"{label} / centralised, success in the server's conditions: {figure_text(f)}")
