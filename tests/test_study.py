@@ -366,3 +366,82 @@ def test_a_multi_task_set_is_tabled_task_by_task_for_each_seed_and_over_the_seed
     assert (tasks["place"]["success-rate"], tasks["sort"]["success-rate"], tasks["sort"]["episodes"]) == (0.6, 0.4, 10)
     print_over_seeds("sim-tasks", {**result, "seeds": [0, 1]})
     assert re.search(r"centralised\s+100 \[72, 100\]\s+100 \[72, 100\]", capsys.readouterr().out)
+
+
+def test_a_new_owner_is_rolled_out_in_its_own_conditions_beside_the_global_model_and_tabled(capsys):
+    """With --new-owner, its two models are rolled out in its conditions alone, beside the
+    federations' model; the paired comparison is printed per seed, and over the seeds with its
+    interval and McNemar's p; a name that is not a simulated set-up, or a setting that is not
+    simulated, is refused before anything trains."""
+    from zk0.bench.models import NEW_ALONE, NEW_FROM_GLOBAL, NEW_OWNER
+    from zk0.bench.study import main, rollout_plan
+    from zk0.bench.study_tables import EQUAL_STEPS, over_seeds, print_over_seeds, print_success
+    from zk0.learning.rates import rate_metrics
+
+    labels = ["start", "Nesterov", "centralised", "local 0", "personal 0", EQUAL_STEPS, NEW_FROM_GLOBAL, NEW_ALONE]
+    plan = rollout_plan(labels, clients=1)
+    assert plan[NEW_OWNER] == ["Nesterov", NEW_FROM_GLOBAL, NEW_ALONE]
+    assert NEW_FROM_GLOBAL not in plan["client 0"] + plan["server"]
+
+    def run(seed: int, fine_tuned: int, alone: int) -> dict:
+        def rates(successes: int) -> dict:
+            outcomes = [1] * successes + [0] * (10 - successes)
+            return {**rate_metrics(outcomes), "lifted-rate": successes / 10, "outcomes": outcomes}
+
+        success = {
+            "Nesterov": {"client 0": rates(3), "server": rates(3), NEW_OWNER: rates(0)},
+            "centralised": {"client 0": rates(4), "server": rates(4)},
+            "local 0": {"client 0": rates(2), "server": rates(1)},
+            NEW_FROM_GLOBAL: {NEW_OWNER: rates(fine_tuned)},
+            NEW_ALONE: {NEW_OWNER: rates(alone)},
+        }
+        targets = {"vs-centralised": {}, "federation-beats-every-local": {}}  # (one owner: nobody else's to compare)
+        return {"seed": seed, "matrix": {"Nesterov": {"server": {"action-mse": 1.0}}}, "success": success,
+                "success-summary": targets, "summary": {}}  # fmt: skip
+
+    first = run(0, fine_tuned=8, alone=2)
+    print_success(first)
+    out = capsys.readouterr().out
+    assert re.search(r"new owner\s*$", out.splitlines()[1]), "the new owner's conditions are a column"
+    assert "the new owner: the global model fine-tuned on its demonstrations against trained on them alone: +60 points" in out
+    result = over_seeds([first, run(1, fine_tuned=6, alone=2)], clients=1)
+    new = result["success-summary"]["new-owner-points"]
+    assert new["value"] == pytest.approx(50.0) and new["low"] > 0 and new["mcnemar-p"] < 0.01
+    print_over_seeds("sim-tasks", {**result, "seeds": [0, 1]})
+    assert "the new owner, fine-tuned from the global model against trained alone: +50 [" in capsys.readouterr().out
+
+    for argv, said in (
+        (["--settings", "sim-tasks", "--new-owner", "sim-so101-owner-3-fly"], "--new-owner got 'sim-so101-owner-3-fly'"),
+        (["--settings", "mild", "--new-owner", "sim-so101-owner-3-sort-cube"], "and only the simulated settings"),
+    ):
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert said in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_new_owner_trains_from_the_global_model_and_alone_on_its_own_demonstrations(tmp_path):
+    """The new owner's two models: each the given steps on its own few demonstrations, one from the
+    federation's model and one from the start; kept in the study's folder under names that say how."""
+    from zk0.bench.models import NEW_ALONE, NEW_FROM_GLOBAL, new_owner
+    from zk0.bench.stash import Stash
+    from zk0.bench.study import study_run
+
+    args = argparse.Namespace(
+        rounds=1, local_steps=1, batch_size=2, lr=1e-3, clients=1, model="tiny-128", personal_steps=0,
+        policy="smolvla", new_owner="sim-so101-owner-16-sort-cube", new_demos=3, new_steps=2,
+    )  # fmt: skip
+    registry = load_registry("configs/sim-tasks-registry.toml")
+    run = study_run(args, "configs/sim-tasks-registry.toml")
+    session = build_client(run, registry.clients[1], registry.model_cameras())
+    start = snapshot(session.bundle)
+    federated = {name: tensor + 0.01 for name, tensor in start.items()}  # another starting point
+    stash = Stash(tmp_path, {})
+    newcomer, trained = new_owner(args, run, registry.model_cameras(), 4, federated, start, stash)
+    assert newcomer.split.entry.name == "sim-so101-owner-16-sort-cube" and newcomer.split.meta.total_episodes == 3
+    assert set(trained) == {NEW_FROM_GLOBAL, NEW_ALONE}
+    for label, origin in ((NEW_FROM_GLOBAL, federated), (NEW_ALONE, start)):
+        moved = [n for n in origin if not torch.equal(trained[label][n], origin[n])]
+        assert moved, f"{label} trained from where it starts"
+    kept = sorted(p.name for p in (tmp_path / "models").glob("*.safetensors"))
+    assert len(kept) == 2 and all("16-sort-cube-3-demos-2-steps" in name for name in kept), kept

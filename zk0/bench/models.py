@@ -27,9 +27,9 @@ from zk0.common.errors import positive
 from zk0.config import OFFLINE_MODELS, RunConfig
 from zk0.data.assets import ensure_dataset
 from zk0.data.loaders import eval_loader, open_evaluation, open_metadata
-from zk0.data.registry import Registry
+from zk0.data.registry import Registry, generated_entry
 from zk0.deployment.simulation import run_federation
-from zk0.federation.client import ClientSession
+from zk0.federation.client import ClientSession, build_client
 from zk0.federation.personal import fine_tuner
 from zk0.learning.policy import build_policy, set_trainable, snapshot
 from zk0.learning.training import PooledTrainer, evaluate
@@ -41,6 +41,8 @@ EVAL_ALL = 1000  # eval-batches: every held-out batch of the synthetic datasets
 # and ask no owner to evaluate, which was most of a small federation's time (20 of 31 s).
 JUDGED_BY_ROLLOUTS = {"eval-batches": 1, "fraction-evaluate": 0.0}
 SERVER = "server"  # the server's evaluation set, as a column of the matrices
+NEW_OWNER = "new owner"  # the conditions of an owner who joins once the federation is trained
+NEW_FROM_GLOBAL, NEW_ALONE = "new owner from global", "new owner alone"  # its two models
 Weights = dict[str, torch.Tensor]
 
 
@@ -172,6 +174,24 @@ def fine_tuned(session: ClientSession, run: RunConfig, start: Weights) -> Weight
     set_trainable(session.bundle, start)
     fine_tuner(run, session.bundle, session.split).fit(run.personal_steps, run.personal_mu, global_step=0)
     return snapshot(session.bundle)
+
+
+def new_owner(
+    args, run: RunConfig, cameras: list[str], index: int, federated: Weights, start: Weights, stash: Stash
+) -> tuple[ClientSession, dict[str, Weights]]:
+    """An owner who joins once the federation is trained (``--new-owner``, ``--new-demos``
+    demonstrations): its session, and its two models, each ``--new-steps`` steps on its own
+    episodes: the global model fine-tuned as an owner fine-tunes a personal model (a quarter of
+    ``--lr``), and the starting model trained at ``--lr`` as an owner alone trains."""
+    ensure_dataset(args.new_owner, episodes=args.new_demos)
+    own = replace(run, num_server_rounds=1, local_steps=args.new_steps, personal_steps=args.new_steps)
+    session = build_client(own, generated_entry(args.new_owner), cameras, index)
+    tag = f"{args.new_owner} {args.new_demos} demos {args.new_steps} steps"
+    trained = {
+        NEW_FROM_GLOBAL: stash.weights(f"{tag} from global", lambda: fine_tuned(session, own, federated)),
+        NEW_ALONE: stash.weights(f"{tag} alone", lambda: local_only(session, own, start)),
+    }
+    return session, trained
 
 
 def evaluation_sets(sessions: list[ClientSession], registry: Registry, run: RunConfig) -> dict:

@@ -22,6 +22,12 @@ On the same synthetic clients, model, batch size and number of samples, with one
   samples; the paired comparisons in each owner's own conditions then answer "what does joining
   give my robot";
 
+- with ``--new-owner NAME``, an owner who joins once the federation is trained, with only
+  ``--new-demos`` demonstrations (a simulated set-up, e.g. of a task no owner teaches): the first
+  federation's model fine-tuned ``--new-steps`` steps on them at a quarter of ``--lr``, against a
+  model trained the same steps on them from the start at ``--lr``, both rolled out in the new
+  owner's conditions beside the global model itself;
+
 then evaluates every model, and the common starting model, on every client's held-out
 episodes and on the server's evaluation set (action MSE in joint units, and the policy loss),
 exactly as the federation's clients and server evaluate. It does so in two settings:
@@ -41,6 +47,7 @@ set whose conditions hold several tasks (the server's, and an owner's who teache
     python -m zk0.bench study [--settings mild noniid sim sim-cube sim-tasks] [--rounds 8] [--local-steps 20]
         [--clients 4] [--model tiny] [--lr 8e-3] [--federation-lr LR] [--federations FedProx FedAvg Nesterov ...]
         [--server-lr LR] [--server-momentum M] [--demos 30] [--sim-episodes 10] [--personal-steps N]
+        [--new-owner NAME] [--new-demos 10] [--new-steps 300]
         [--output-dir outputs/bench-study]
 """
 
@@ -57,6 +64,7 @@ from pathlib import Path
 from zk0.artifacts.resume import find_resume_point
 from zk0.bench.models import (
     EVAL_ALL,
+    NEW_OWNER,
     SERVER,
     Weights,
     centralised,
@@ -67,12 +75,14 @@ from zk0.bench.models import (
     fine_tuned,
     generate,
     local_only,
+    new_owner,
 )  # fmt: skip
 from zk0.bench.stash import Stash
 from zk0.bench.study_tables import (
     EQUAL_STEPS,
     FEDERATIONS,
     chart,
+    federations,
     over_seeds,
     print_over_seeds,
     print_setting,
@@ -84,6 +94,7 @@ from zk0.config import OFFLINE_MODELS, POLICIES, RunConfig
 from zk0.data.registry import PROJECT_ROOT, load_registry
 from zk0.federation.client import build_client
 from zk0.learning.policy import PolicyBundle, snapshot
+from zk0.sim.tasks import SIM_SPECS
 
 SETTINGS = {
     "mild": "",
@@ -168,8 +179,11 @@ def federated_models(
 # What the models of a study depend on: a folder holding models trained otherwise is refused.
 TRAINING_KEYS = ("rounds", "local_steps", "batch_size", "model", "lr", "federation_lr", "proximal_mu", "federations",
                  "server_lr", "server_momentum", "clients", "demos", "personal_steps", "wire_dtype", "policy")  # fmt: skip
-# A key that studies recorded before it existed, and its value then (they trained SmolVLA).
-BEFORE_KEYS = {"policy": "smolvla"}
+# What a new owner's models depend on (kept in the stash under names that say it, so adding one to a
+# study keeps the models trained before it).
+NEW_OWNER_KEYS = ("new_owner", "new_demos", "new_steps")
+# A key that studies recorded before it existed, and its value then (they trained SmolVLA, no new owner).
+BEFORE_KEYS = {"policy": "smolvla", "new_owner": None, "new_demos": 10, "new_steps": 300}
 
 
 def training_settings(args: argparse.Namespace) -> dict:
@@ -181,14 +195,19 @@ def training_settings(args: argparse.Namespace) -> dict:
 def rollout_plan(models: list[str], clients: int) -> dict[str, list[str]]:
     """Which models are rolled out in which conditions: every model in the server's span (the
     untrained start only there); in each owner's own, every model but the equal-steps baseline
-    (an offline question) and the other owners' personal models (no one else runs them)."""
+    (an offline question) and the other owners' personal models (no one else runs them); a new
+    owner's two models only in its own, beside the federations'."""
+
+    newcomer = [m for m in models if m.startswith("new owner ")]
 
     def mine(label: str, column: str) -> bool:
         return not label.startswith("personal ") or column == f"client {label.split()[-1]}"
 
-    plan = {f"client {c}": [m for m in models if m not in ("start", EQUAL_STEPS) and mine(m, f"client {c}")]
+    plan = {f"client {c}": [m for m in models if m not in ("start", EQUAL_STEPS, *newcomer) and mine(m, f"client {c}")]
             for c in range(clients)}  # fmt: skip
-    plan[SERVER] = [m for m in models if m != EQUAL_STEPS]
+    plan[SERVER] = [m for m in models if m not in (EQUAL_STEPS, *newcomer)]
+    if newcomer:  # the new owner's two models beside the global one(s), in its own conditions alone
+        plan[NEW_OWNER] = [*federations(dict.fromkeys(models)), *newcomer]
     return plan
 
 
@@ -245,6 +264,11 @@ def run_seed(args: argparse.Namespace, setting: str, seed: int) -> dict | None:
     models[EQUAL_STEPS] = stash.weights(EQUAL_STEPS, lambda: pooled(wide=True))
     say("equal steps trained")
     matrix = evaluate_all(models, columns, run, stash)
+    if args.new_owner:  # judged in closed loop in its own conditions only: its models join after the matrix
+        newcomer, trained = new_owner(args, run, cameras, len(sessions), models[args.federations[0]], start, stash)
+        columns[NEW_OWNER] = (newcomer.bundle, newcomer.split, newcomer.eval_batches)
+        models |= trained
+        say(f"the new owner's models trained ({args.new_owner}, {args.new_demos} demonstrations)")
     say("every model evaluated on every held-out set")
     closed_loop = {}
     if setting in SIM_SETTINGS:
@@ -256,6 +280,7 @@ def run_seed(args: argparse.Namespace, setting: str, seed: int) -> dict | None:
         "seed": seed,
         "registry": registry_path or "pyproject.toml",
         "clients": {f"client {s.index}": s.split.entry.name for s in sessions},
+        **({"new-owner": args.new_owner} if args.new_owner else {}),
         "server": run.server_eval_dataset,
         "matrix": matrix,
         "summary": summary(matrix, len(sessions)),
@@ -308,6 +333,14 @@ def build_parser() -> OneSentenceParser:
         "data at a quarter of --lr (zk0.federation.personal), and each local-only model fine-tuned alike; 0 = none",
     )  # fmt: skip
     parser.add_argument(
+        "--new-owner", metavar="NAME",
+        help="a simulated set-up whose owner joins once the federation is trained (e.g. sim-so101-owner-16-sort-cube in "
+        "sim-tasks, whose owners teach no sort): the global model fine-tuned on its demonstrations against a model "
+        "trained on them from the start, rolled out in its conditions (sim settings)",
+    )  # fmt: skip
+    parser.add_argument("--new-demos", type=positive(int), default=10, help="the new owner's demonstrations")
+    parser.add_argument("--new-steps", type=positive(int), default=300, help="steps each new-owner model trains")
+    parser.add_argument(
         "--seeds", nargs="+", type=int, default=[RunConfig.seed],
         help="training seeds: every model is trained once per seed (the frozen backbone's start, the data order, "
         "the noise) and rolled out on the same seeded episodes; the tables give the mean, the spread and intervals",
@@ -336,7 +369,7 @@ def earlier_seeds(args: argparse.Namespace) -> dict[str, dict[int, dict]]:
         raise Zk0Error(
             f"--seeds-from {args.seeds_from!r} is not a study's JSON (python -m zk0.bench study --json)."
         ) from None
-    for key in (*TRAINING_KEYS, "sim_episodes"):
+    for key in (*TRAINING_KEYS, "sim_episodes", *NEW_OWNER_KEYS):
         mine, theirs = json.loads(json.dumps(vars(args)[key])), settings.get(key, BEFORE_KEYS.get(key))
         if theirs != mine:
             raise Zk0Error(
@@ -354,6 +387,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--personal-steps got {args.personal_steps}; expected 0 (none) or more")
     if len(set(args.seeds)) != len(args.seeds) or min(args.seeds) < 0:
         parser.error(f"--seeds got {' '.join(map(str, args.seeds))}; expected different seeds, each 0 or more")
+    if args.new_owner and (args.new_owner not in SIM_SPECS or not set(args.settings) <= set(SIM_SETTINGS)):
+        parser.error(
+            f"--new-owner got {args.new_owner!r}; expected a simulated set-up ({', '.join(SIM_SPECS.described())}) "
+            f"and only the simulated settings ({', '.join(SIM_SETTINGS)})"
+        )
     for setting in args.settings:
         available = len(load_registry(SETTINGS[setting]).clients)
         if args.clients > available:

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
-from zk0.bench.models import SERVER
+from zk0.bench.models import NEW_ALONE, NEW_FROM_GLOBAL, NEW_OWNER, SERVER
 from zk0.learning.rates import bootstrap, compare_text, mcnemar, rate_metrics
 
 EQUAL_STEPS = "equal steps"  # centralised at the federation's sequential steps, batch = clients x batch
@@ -120,7 +120,7 @@ def print_success(result: dict) -> None:
     """The closed-loop matrix (success with its 95% interval), the paired comparisons on each
     owner's own conditions, and the sim targets."""
     success = result["success"]
-    columns = list(success["centralised"])
+    columns = every_column(success)
     episodes = int(success["centralised"][SERVER]["episodes"])
     print(f"closed-loop success in each set's conditions, % [95% interval] of {episodes} seeded episodes")
     print(f"{'':<12}" + "".join(f"{c:>14}" for c in columns))
@@ -128,13 +128,20 @@ def print_success(result: dict) -> None:
         cells = [rate_cell(row[c]) if c in row else "-" for c in columns]
         print(f"{label:<12}" + "".join(f"{cell:>14}" for cell in cells))
     print_tasks(success)
-    for column in columns[:-1]:
+    for column in [c for c in columns if c.startswith("client ")]:
         owner = column.split()[-1]
         models = [*federations(success), f"personal {owner}"]
         for label, other in [(m, o) for m in models for o in (f"local {owner}", "centralised") if m in success]:
             if "outcomes" in success[label][column] and "outcomes" in success[other][column]:
                 paired = compare_text(success[label][column]["outcomes"], success[other][column]["outcomes"])
                 print(f"  {label} against {other} in {column}'s conditions: {paired}")
+    if NEW_OWNER in success.get(NEW_FROM_GLOBAL, {}):
+        paired = compare_text(
+            success[NEW_FROM_GLOBAL][NEW_OWNER]["outcomes"], success[NEW_ALONE][NEW_OWNER]["outcomes"]
+        )
+        print(
+            f"  the new owner: the global model fine-tuned on its demonstrations against trained on them alone: {paired}"
+        )
     s = result["success-summary"]
     for label, ratio in s["vs-centralised"].items():
         shown = "n/a (centralised 0%)" if ratio is None else f"{ratio:.2f}"
@@ -171,6 +178,11 @@ def print_tasks(success: dict[str, dict[str, dict]]) -> None:
         print(f"{'':<22}" + "".join(f"{k:>20}" for k in kinds))
         for label, tasks in rows.items():
             print(f"{label:<22}" + "".join(f"{rate_cell(tasks[k]):>20}" for k in kinds))
+
+
+def every_column(success: dict[str, dict[str, dict]]) -> list[str]:
+    """The conditions any model was rolled out in: the owners', the server's, a new owner's."""
+    return list(dict.fromkeys(column for row in success.values() for column in row))
 
 
 def rate_cell(rates: dict) -> str:
@@ -230,6 +242,12 @@ def targets_over_seeds(outcomes: dict[str, list[list[int]]], clients: int, label
         "vs-centralised": {f: figure(lambda v, f=f: rate(v, f, SERVER) / rate(v, "centralised", SERVER)) for f in labels},
         "vs-centralised-every-set": {f: figure(lambda v, f=f: every(v, f) / every(v, "centralised")) for f in labels},
     }  # fmt: skip
+    if f"{NEW_FROM_GLOBAL} | {NEW_OWNER}" in outcomes:  # what the federation gives an owner who joins late
+        pairs = [sum(outcomes[f"{m} | {NEW_OWNER}"], []) for m in (NEW_FROM_GLOBAL, NEW_ALONE)]
+        targets["new-owner-points"] = {
+            **figure(lambda v: 100 * (rate(v, NEW_FROM_GLOBAL, NEW_OWNER) - rate(v, NEW_ALONE, NEW_OWNER))),
+            "mcnemar-p": mcnemar(*pairs),
+        }
     if f"personal 0 | {SERVER}" not in outcomes:
         return targets
     own = [(f"personal {c}", f"local {c}", f"client {c}") for c in range(clients)]
@@ -253,7 +271,7 @@ def print_over_seeds(setting: str, result: dict) -> None:
     """The closed-loop table over the training seeds and the targets, each with its interval."""
     seeds = ", ".join(map(str, result["seeds"]))
     success = result["success"]
-    columns = list(success["centralised"])
+    columns = every_column(success)
     episodes = success["centralised"][SERVER]["episodes"]
     print(f"\nsetting {setting} over training seeds {seeds}: closed-loop success, mean % over the seeds "
           f"[95% interval of every seed's {episodes} episodes] (lowest-highest seed)")  # fmt: skip
@@ -267,6 +285,10 @@ def print_over_seeds(setting: str, result: dict) -> None:
         print(f"{label} / centralised, success in the server's conditions: {figure_text(f)}")
     for label, f in t["vs-centralised-every-set"].items():
         print(f"{label} / centralised, success over every set's conditions: {figure_text(f)} (target >= 0.9)")
+    if "new-owner-points" in t:
+        f = t["new-owner-points"]
+        print(f"the new owner, fine-tuned from the global model against trained alone: {figure_text(f, points=True)} "
+              f"(McNemar p = {f['mcnemar-p']:.2g} over every seed's pairs)")  # fmt: skip
     if "personal-minus-alone-points" in t:
         print(f"personal models against each owner alone, own conditions: "
               f"{figure_text(t['personal-minus-alone-points'], points=True)} (target >= +20)")  # fmt: skip

@@ -193,12 +193,12 @@ def _owners(raw: dict) -> tuple[list[DatasetEntry], DatasetEntry]:
             f"not {kind!r}."
         )
     form, server = OWNER_KINDS[kind]
-    owners = [_generated_entry(form.format(i)) for i in range(count)]
-    public_sets = [_generated_entry(PUBLIC_KINDS[kind].format(i), "public") for i in range(public)]
-    return [*owners, *public_sets], _generated_entry(server, "server")
+    owners = [generated_entry(form.format(i)) for i in range(count)]
+    public_sets = [generated_entry(PUBLIC_KINDS[kind].format(i), "public") for i in range(public)]
+    return [*owners, *public_sets], generated_entry(server, "server")
 
 
-def _generated_entry(name: str, role: str = "client") -> DatasetEntry:
+def generated_entry(name: str, role: str = "client") -> DatasetEntry:
     """The registry entry of a dataset zk0 generates: its cameras mapped in order onto camera1, camera2."""
     spec = SPECS.get(name) or SIM_SPECS[name]
     return DatasetEntry(
