@@ -341,7 +341,8 @@ class PickCubeEnv(gym.Env):
 def make_env(
     conditions: str = "sim-so101-eval", height: int = 128, width: int = 128, kind: str | None = None
 ) -> PickCubeEnv:
-    """The env in one recorded set-up's conditions (``zk0.sim.tasks.SIM_SPECS``), by name, doing
-    its own task (a multi-task set-up's first) or the ``kind`` given: what ``gym.make`` builds for lerobot's ``zk0_so101`` env config."""
+    """The env in one recorded set-up's conditions (``zk0.sim.tasks.SIM_SPECS``), by name, doing its
+    own task (a multi-task set-up's first) or the ``kind`` given: what ``gym.make`` builds for
+    lerobot's ``zk0_so101`` env config."""
     task = SIM_SPECS[conditions].task
     return PickCubeEnv(replace(task, kind=kind) if kind else task, height, width)
