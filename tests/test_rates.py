@@ -76,3 +76,14 @@ def test_the_bootstrap_draws_within_each_seed_and_says_when_a_ratio_has_no_figur
         {"a": rows, "zero": [[0] * 10] * 3}, lambda v: v["a"].mean(axis=(-2, -1)) / v["zero"].mean(axis=(-2, -1))
     )
     assert all(math.isnan(x) for x in ratio)
+
+
+def test_the_bootstrap_draws_sets_of_different_sizes_each_paired_within_itself():
+    """A multi-task set's rollouts have more episodes than a one-task owner's: each size gets draws of
+    its own, and two models on the same episodes stay paired (their difference never moves)."""
+    one_task = [[1, 0] * 5]
+    every_task = [[1, 1, 0, 0] * 10]
+    outcomes = {"a | owner": one_task, "b | owner": one_task, "a | server": every_task, "b | server": every_task}
+    assert bootstrap(outcomes, lambda v: v["a | owner"].mean(axis=(-2, -1)) - v["b | owner"].mean(axis=(-2, -1))) == (0.0, 0.0)
+    low, high = bootstrap(outcomes, lambda v: v["a | server"].mean(axis=(-2, -1)) - v["a | owner"].mean(axis=(-2, -1)))
+    assert low < 0.0 < high

@@ -363,9 +363,12 @@ def test_a_multi_task_set_is_tabled_task_by_task_for_each_seed_and_over_the_seed
     assert re.search(r"FedAvg\s+80 \[38, 96\]\s+20 \[4, 62\]", out), out
     result = over_seeds([first, run(1, place=2, sort=3)], clients=1)
     tasks = result["success"]["FedAvg"]["server"]["tasks"]
-    assert (tasks["place"]["success-rate"], tasks["sort"]["success-rate"], tasks["sort"]["episodes"]) == (0.6, 0.4, 10)
+    assert (tasks["place"]["success-rate"], tasks["sort"]["success-rate"], tasks["sort"]["episodes"]) == (0.6, 0.4, 5)
+    assert (tasks["sort"]["success-low"], tasks["sort"]["success-high"]) == pytest.approx(wilson(4, 10))
     print_over_seeds("sim-tasks", {**result, "seeds": [0, 1]})
-    assert re.search(r"centralised\s+100 \[72, 100\]\s+100 \[72, 100\]", capsys.readouterr().out)
+    out = capsys.readouterr().out
+    assert re.search(r"centralised\s+100 \[72, 100\]\s+100 \[72, 100\]", out)
+    assert "[95% interval of every seed's 5 episodes per task]" in out
 
 
 def test_a_new_owner_is_rolled_out_in_its_own_conditions_beside_the_global_model_and_tabled(capsys):

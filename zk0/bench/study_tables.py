@@ -121,8 +121,7 @@ def print_success(result: dict) -> None:
     owner's own conditions, and the sim targets."""
     success = result["success"]
     columns = every_column(success)
-    episodes = int(success["centralised"][SERVER]["episodes"])
-    print(f"closed-loop success in each set's conditions, % [95% interval] of {episodes} seeded episodes")
+    print(f"closed-loop success in each set's conditions, % [95% interval] of {episodes_text(success)}")
     print(f"{'':<12}" + "".join(f"{c:>14}" for c in columns))
     for label, row in success.items():
         cells = [rate_cell(row[c]) if c in row else "-" for c in columns]
@@ -180,6 +179,15 @@ def print_tasks(success: dict[str, dict[str, dict]]) -> None:
             print(f"{label:<22}" + "".join(f"{rate_cell(tasks[k]):>20}" for k in kinds))
 
 
+def episodes_text(success: dict[str, dict[str, dict]], seeded: str = "seeded ") -> str:
+    """``100 seeded episodes``, or in a multi-task set ``100 seeded episodes per task``: how many
+    episodes each rate in the server's conditions is over (centralised is rolled out there)."""
+    server = success["centralised"][SERVER]
+    tasks = task_rates(server)
+    episodes = int(next(iter(tasks.values()))["episodes"] if tasks else server["episodes"])
+    return f"{episodes} {seeded}episodes" + (" per task" if tasks else "")
+
+
 def every_column(success: dict[str, dict[str, dict]]) -> list[str]:
     """The conditions any model was rolled out in: the owners', the server's, a new owner's."""
     return list(dict.fromkeys(column for row in success.values() for column in row))
@@ -214,7 +222,9 @@ def over_seeds(runs: list[dict], clients: int) -> dict:
         }  # fmt: skip
         if kinds := first["success"][label][column].get("kinds"):  # each task over every seed's episodes
             every = {"outcomes": sum(rows, []), "kinds": kinds * len(rows)}
-            success[label][column]["tasks"] = task_rates(every)
+            success[label][column]["tasks"] = {  # "episodes" as the overall figure says it: per seed
+                kind: {**rates, "episodes": rates["episodes"] / len(rows)} for kind, rates in task_rates(every).items()
+            }
     result["success"] = success
     result["success-summary"] = targets_over_seeds(outcomes, clients, federations(first["success"]))
     return result
@@ -272,9 +282,8 @@ def print_over_seeds(setting: str, result: dict) -> None:
     seeds = ", ".join(map(str, result["seeds"]))
     success = result["success"]
     columns = every_column(success)
-    episodes = success["centralised"][SERVER]["episodes"]
     print(f"\nsetting {setting} over training seeds {seeds}: closed-loop success, mean % over the seeds "
-          f"[95% interval of every seed's {episodes} episodes] (lowest-highest seed)")  # fmt: skip
+          f"[95% interval of every seed's {episodes_text(success, seeded='')}] (lowest-highest seed)")  # fmt: skip
     print(f"{'':<22}" + "".join(f"{c:>20}" for c in columns))
     for label, row in success.items():
         cells = [seed_cell(row[c]) if c in row else "-" for c in columns]

@@ -129,19 +129,23 @@ def bootstrap(
     """The 95% percentile interval of ``statistic`` over episodes drawn again with replacement.
 
     ``outcomes`` maps a name (a model in a set of conditions) to one row of per-episode outcomes
-    per training seed, every row the same length. Each draw takes one set of episode indices per
-    row and uses it for every name, so models rolled out on the same episodes stay paired (and
-    sets of conditions, whose episodes are independent, are drawn jointly, which is as valid).
+    per training seed. Each draw takes one set of episode indices per row and per number of
+    episodes, and uses it for every name with that many, so models rolled out on the same episodes
+    stay paired (sets of conditions, whose episodes are independent, are drawn jointly where they
+    have as many, which is as valid; a multi-task set has more episodes than a one-task set).
     ``statistic`` maps name -> array ``[..., seeds, episodes]`` to ``[...]``, as numpy does: it is
     called once, on every draw together. The interval is the episodes' noise; how much training
     seeds differ is the spread between rows, reported beside it.
     """
     arrays = {name: np.asarray(rows, dtype=float) for name, rows in outcomes.items()}
-    seeds, episodes = next(iter(arrays.values())).shape
-    index = np.random.default_rng(seed).integers(0, episodes, size=(draws, seeds, episodes))
+    seeds = next(iter(arrays.values())).shape[0]
+    rng = np.random.default_rng(seed)
+    lengths = sorted({a.shape[1] for a in arrays.values()})
+    index = {n: rng.integers(0, n, size=(draws, seeds, n)) for n in lengths}
     rows = np.arange(seeds)[None, :, None]
     with np.errstate(divide="ignore", invalid="ignore"):  # a ratio over a draw with no success is no figure
-        values = np.asarray(statistic({name: a[rows, index] for name, a in arrays.items()}), dtype=float)
+        drawn = {name: a[rows, index[a.shape[1]]] for name, a in arrays.items()}
+        values = np.asarray(statistic(drawn), dtype=float)
     values = values[np.isfinite(values)]
     if not values.size:
         return math.nan, math.nan
