@@ -425,7 +425,8 @@ def test_a_new_owner_is_rolled_out_in_its_own_conditions_beside_the_global_model
 @pytest.mark.slow
 def test_a_new_owner_trains_from_the_global_model_and_alone_on_its_own_demonstrations(tmp_path):
     """The new owner's two models: each the given steps on its own few demonstrations, one from the
-    federation's model and one from the start; kept in the study's folder under names that say how."""
+    federation's model and one from the start; kept in a folder of the study's named for the new owner,
+    its demonstrations and its steps."""
     from zk0.bench.models import NEW_ALONE, NEW_FROM_GLOBAL, new_owner
     from zk0.bench.stash import Stash
     from zk0.bench.study import study_run
@@ -440,11 +441,11 @@ def test_a_new_owner_trains_from_the_global_model_and_alone_on_its_own_demonstra
     start = snapshot(session.bundle)
     federated = {name: tensor + 0.01 for name, tensor in start.items()}  # another starting point
     stash = Stash(tmp_path, {})
-    newcomer, trained = new_owner(args, run, registry.model_cameras(), 4, federated, start, stash)
+    newcomer, trained, kept = new_owner(args, run, registry.model_cameras(), 4, federated, start, stash)
     assert newcomer.split.entry.name == "sim-so101-owner-16-sort-cube" and newcomer.split.meta.total_episodes == 3
     assert set(trained) == {NEW_FROM_GLOBAL, NEW_ALONE}
     for label, origin in ((NEW_FROM_GLOBAL, federated), (NEW_ALONE, start)):
         moved = [n for n in origin if not torch.equal(trained[label][n], origin[n])]
         assert moved, f"{label} trained from where it starts"
-    kept = sorted(p.name for p in (tmp_path / "models").glob("*.safetensors"))
-    assert len(kept) == 2 and all("16-sort-cube-3-demos-2-steps" in name for name in kept), kept
+    assert kept.folder == tmp_path / "new-owner" / "sim-so101-owner-16-sort-cube-3-demos-2-steps"
+    assert sorted(p.name for p in (kept.folder / "models").glob("*")) == ["alone.safetensors", "from-global.safetensors"]

@@ -178,20 +178,22 @@ def fine_tuned(session: ClientSession, run: RunConfig, start: Weights) -> Weight
 
 def new_owner(
     args, run: RunConfig, cameras: list[str], index: int, federated: Weights, start: Weights, stash: Stash
-) -> tuple[ClientSession, dict[str, Weights]]:
+) -> tuple[ClientSession, dict[str, Weights], Stash]:
     """An owner who joins once the federation is trained (``--new-owner``, ``--new-demos``
-    demonstrations): its session, and its two models, each ``--new-steps`` steps on its own
-    episodes: the global model fine-tuned as an owner fine-tunes a personal model (a quarter of
-    ``--lr``), and the starting model trained at ``--lr`` as an owner alone trains."""
+    demonstrations): its session, its two models, each ``--new-steps`` steps on its own episodes
+    (the global model fine-tuned as an owner fine-tunes a personal model, at a quarter of ``--lr``;
+    the starting model trained at ``--lr`` as an owner alone trains), and the stash its models and
+    rollouts are kept in: a folder of the study's named for the new owner, its demonstrations and
+    steps, so another new owner's figures are never taken for these."""
     ensure_dataset(args.new_owner, episodes=args.new_demos)
     own = replace(run, num_server_rounds=1, local_steps=args.new_steps, personal_steps=args.new_steps)
     session = build_client(own, generated_entry(args.new_owner), cameras, index)
-    tag = f"{args.new_owner} {args.new_demos} demos {args.new_steps} steps"
+    kept = Stash(stash.folder / "new-owner" / f"{args.new_owner}-{args.new_demos}-demos-{args.new_steps}-steps", {})
     trained = {
-        NEW_FROM_GLOBAL: stash.weights(f"{tag} from global", lambda: fine_tuned(session, own, federated)),
-        NEW_ALONE: stash.weights(f"{tag} alone", lambda: local_only(session, own, start)),
+        NEW_FROM_GLOBAL: kept.weights("from global", lambda: fine_tuned(session, own, federated)),
+        NEW_ALONE: kept.weights("alone", lambda: local_only(session, own, start)),
     }
-    return session, trained
+    return session, trained, kept
 
 
 def evaluation_sets(sessions: list[ClientSession], registry: Registry, run: RunConfig) -> dict:

@@ -265,7 +265,8 @@ def run_seed(args: argparse.Namespace, setting: str, seed: int) -> dict | None:
     say("equal steps trained")
     matrix = evaluate_all(models, columns, run, stash)
     if args.new_owner:  # judged in closed loop in its own conditions only: its models join after the matrix
-        newcomer, trained = new_owner(args, run, cameras, len(sessions), models[args.federations[0]], start, stash)
+        federated = models[args.federations[0]]
+        newcomer, trained, newcomer_stash = new_owner(args, run, cameras, len(sessions), federated, start, stash)
         columns[NEW_OWNER] = (newcomer.bundle, newcomer.split, newcomer.eval_batches)
         models |= trained
         say(f"the new owner's models trained ({args.new_owner}, {args.new_demos} demonstrations)")
@@ -273,7 +274,14 @@ def run_seed(args: argparse.Namespace, setting: str, seed: int) -> dict | None:
     closed_loop = {}
     if setting in SIM_SETTINGS:
         plan = rollout_plan(list(models), len(sessions))
+        newcomer_plan = {NEW_OWNER: plan.pop(NEW_OWNER)} if NEW_OWNER in plan else {}
         success = closed_loop_all(plan, models, columns, args.sim_episodes, RunConfig.seed, say, stash)
+        if newcomer_plan:  # kept in the new owner's own folder (another new owner is other rollouts)
+            rolled = closed_loop_all(
+                newcomer_plan, models, columns, args.sim_episodes, RunConfig.seed, say, newcomer_stash
+            )
+            for label, row in rolled.items():
+                success.setdefault(label, {}).update(row)
         closed_loop = {"success": success, "success-summary": sim_summary(success, len(sessions))}
     return {
         **closed_loop,

@@ -200,7 +200,8 @@ def drawn_kinds(index: int) -> tuple[str, ...]:
     ``sim-so101-owner-<N>``'s."""
     rng = np.random.default_rng([TASK_SEED, index])
     count = 2 if rng.random() < TWO_TASKS else 1
-    return tuple(str(KINDS[int(k)]) for k in rng.choice(len(KINDS), size=count, replace=False))
+    drawn = sorted(rng.choice(len(KINDS), size=count, replace=False))  # named in KINDS' order
+    return tuple(KINDS[int(k)] for k in drawn)
 
 
 def drawn_setup(seed: int, index: int, name: str, repo_id: str) -> DemoSpec:
