@@ -276,6 +276,7 @@ def test_a_machine_that_cannot_render_says_so_in_one_sentence():
 
 
 @pytest.mark.e2e
+@pytest.mark.allowance(300)
 def test_a_federation_of_owners_of_different_tasks_is_judged_task_by_task_and_lerobot_evaluates_its_model(
     flower_env, tmp_path
 ):

@@ -437,6 +437,7 @@ def test_a_new_owner_trains_from_the_global_model_and_alone_on_its_own_demonstra
     )  # fmt: skip
     registry = load_registry("configs/sim-tasks-registry.toml")
     run = study_run(args, "configs/sim-tasks-registry.toml")
+    ensure_dataset(registry.clients[1].name)  # an owner of the federation, for the start it shares
     session = build_client(run, registry.clients[1], registry.model_cameras())
     start = snapshot(session.bundle)
     federated = {name: tensor + 0.01 for name, tensor in start.items()}  # another starting point
