@@ -86,6 +86,7 @@ def test_a_rollout_reports_its_rate_with_the_interval_and_writes_the_first_video
     assert (metrics["success-low"], metrics["success-high"]) == pytest.approx(wilson(0, 3))
     assert metrics["success-high"] > 0.5 and metrics["episode-length"] == 60
     assert set(metrics) >= {"reached-rate", "grasped-rate", "lifted-rate", "sim-eval-s"}
+    assert "placed-rate" not in metrics, "a pick-up places nothing"
     assert (tmp_path / "videos" / "round_1.mp4").stat().st_size > 1000
     assert summary(again) | {"sim-eval-s": metrics["sim-eval-s"]} == metrics
 
@@ -112,6 +113,8 @@ def test_a_multi_task_set_is_rolled_out_task_by_task_with_each_tasks_rate():
     metrics = summary(episodes)
     assert metrics["episodes"] == 8 and list(per_task(metrics)) == list(KINDS)
     assert all(per_task(metrics)[kind]["episodes"] == 2 for kind in KINDS)
+    assert metrics["placed-rate"] == per_task(metrics)["sort"]["placed-rate"] == 0.0, "the funnel's fourth grade"
+    assert "placed-rate" not in per_task(metrics)["pick"], "a pick-up places nothing"
     assert simulator_text(metrics) == (
         f"success {rate_text(0.0, 8)} in the simulator over 4 tasks (worst: pick, {rate_text(0.0, 2)})"
     )

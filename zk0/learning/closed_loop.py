@@ -55,6 +55,7 @@ class Episode:
     lifted: bool
     steps: int
     actions: np.ndarray = field(repr=False)
+    placed: bool = False  # a task that moves a cube somewhere: a lifted cube rested there (zk0.sim.env)
 
 
 class ClosedLoop:
@@ -145,7 +146,7 @@ class ClosedLoop:
                     frames.append(env.render())  # the video's episode: every step, as lerobot records it
                 if success or env.steps >= length:
                     ended[i] = Episode(seeds[i], kind, success, **{g: env.outcome[g] for g in GRADES}, steps=env.steps,
-                                       actions=np.stack(actions[i]))  # fmt: skip
+                                       actions=np.stack(actions[i]), placed=env.outcome.get("placed", False))  # fmt: skip
         return [e for e in ended if e is not None]
 
     def _observation(self, bundle: PolicyBundle, envs: Sequence[PickCubeEnv], observations: list[dict]) -> dict:
@@ -183,8 +184,9 @@ class ClosedLoop:
 
 
 def summary(episodes: Sequence[Episode]) -> dict[str, float]:
-    """Success rate with its 95% interval and episode count, each grade's rate, the mean length; in
-    a multi-task set-up the same for each task (``place-success-rate``, ``place-episodes``, ...)
+    """Success rate with its 95% interval and episode count, each grade's rate (``placed-rate`` over
+    the episodes of tasks that move a cube somewhere), the mean length; in a multi-task set-up the
+    same for each task (``place-success-rate``, ``place-episodes``, ...)
     beside those over every episode."""
     metrics = _rates(episodes)
     kinds = list(dict.fromkeys(e.kind for e in episodes))
@@ -197,5 +199,7 @@ def summary(episodes: Sequence[Episode]) -> dict[str, float]:
 def _rates(episodes: Sequence[Episode]) -> dict[str, float]:
     metrics = rate_metrics([e.success for e in episodes])
     metrics |= {f"{grade}-rate": float(np.mean([getattr(e, grade) for e in episodes])) for grade in GRADES}
+    if placing := [e for e in episodes if e.kind != "pick"]:  # the funnel's fourth grade, where there is one
+        metrics["placed-rate"] = float(np.mean([e.placed for e in placing]))
     metrics["episode-length"] = float(np.mean([e.steps for e in episodes]))
     return metrics
