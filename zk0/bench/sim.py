@@ -109,7 +109,7 @@ def closed_loop_cost(episodes: int, reference: int) -> dict:
     finally:
         env.close()
         loop.close()
-    return {"episodes": episodes, "batch": len(loop.envs[SIM_SPECS[CONDITIONS].task.kind]), "seconds": fast, "seconds-per-episode": fast / episodes,
+    return {"episodes": episodes, "batch": loop.batch, "seconds": fast, "seconds-per-episode": fast / episodes,
             "reference-episodes": reference, "reference-seconds-per-episode": slow / reference,
             "speed-up": (slow / reference) / (fast / episodes), "episode-length": rates["episode-length"]}  # fmt: skip
 

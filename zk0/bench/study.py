@@ -64,6 +64,8 @@ from pathlib import Path
 from zk0.artifacts.resume import find_resume_point
 from zk0.bench.models import (
     EVAL_ALL,
+    NEW_ALONE,
+    NEW_FROM_GLOBAL,
     NEW_OWNER,
     SERVER,
     Weights,
@@ -198,7 +200,7 @@ def rollout_plan(models: list[str], clients: int) -> dict[str, list[str]]:
     (an offline question) and the other owners' personal models (no one else runs them); a new
     owner's two models only in its own, beside the federations'."""
 
-    newcomer = [m for m in models if m.startswith("new owner ")]
+    newcomer = [m for m in models if m in (NEW_FROM_GLOBAL, NEW_ALONE)]
 
     def mine(label: str, column: str) -> bool:
         return not label.startswith("personal ") or column == f"client {label.split()[-1]}"

@@ -70,9 +70,10 @@ class ClosedLoop:
             conditions=conditions, observation_height=height, observation_width=width, episode_length=episode_length
         )
         self.env_preprocessor, self.env_postprocessor = self.config.get_env_processors()
-        tasks = SIM_SPECS[conditions].tasks
+        self.batch = min(batch, episodes)  # episodes stepped together, each task's apart
         self.envs = {
-            task.kind: [PickCubeEnv(task, height, width) for _ in range(min(batch, episodes))] for task in tasks
+            task.kind: [PickCubeEnv(task, height, width) for _ in range(self.batch)]
+            for task in SIM_SPECS[conditions].tasks
         }
         self.episodes, self.seed = episodes, seed
 
