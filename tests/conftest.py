@@ -34,11 +34,18 @@ def require_tool(command: str, package: str) -> None:
 @pytest.fixture(autouse=True)
 def ordinary_scheduling():
     """Each test (and what it starts) under the ordinary time-sharing policy, as a user's processes
-    run. In a clean-clone CI run both test workers were found at SCHED_FIFO 99 part-way through
-    the suite (set by none of zk0's code or tests); busy processes a test started inherited it,
-    held both cores and starved the throttle that was to slow them (tests/test_throttle.py hung)."""
+    run, and its worker left so. In clean-clone CI runs both test workers were found at SCHED_FIFO
+    99 part-way through the suite: lerobot's video codec (libsvtav1), run as root, leaves the
+    thread that encoded a video there (tests/test_assets.py), and tests write datasets with
+    lerobot's own calls. Busy processes a test started inherited it, held both cores and starved
+    the other worker (tests/test_throttle.py hung); the next test's session fixtures (this
+    worker's SuperLink) start before this fixture, so it also resets when a test ends."""
+    from zk0.common import machine
+
     if os.sched_getscheduler(0) != os.SCHED_OTHER:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    with machine.ordinary_scheduling():
+        yield
 
 
 @pytest.fixture(scope="session", autouse=True)

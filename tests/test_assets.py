@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+import os
+import threading
 
 import numpy as np
 import pytest
@@ -146,6 +148,7 @@ def test_cli_assets_prints_paths_and_rejects_bad_names(tmp_path, capsys):
     assert "'synth-nope'" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # a process of its own, which imports lerobot
 def test_cli_assets_shows_one_bar_of_its_own_and_logs_what_the_libraries_print(tmp_path):
     """Generating prints zk0's progress bar, not FFmpeg's muxer lines or datasets' bars; those are in
     assets.log in the cache."""
@@ -217,3 +220,38 @@ def test_noniid_quarters_are_disjoint_and_the_rates_average_to_the_server_sets()
     rates = [SPECS[n].approach_rate for n in NON_IID]
     assert len(set(rates)) == len(rates)
     assert sum(rates) / len(rates) == pytest.approx(SPECS["synth-so100-eval"].approach_rate)
+
+
+def policy_after(work) -> int:
+    """The scheduling policy of a thread of its own once it has done ``work`` (this test's worker
+    keeps its own, whatever ``work`` does)."""
+    seen = []
+    thread = threading.Thread(target=lambda: (work(), seen.append(os.sched_getscheduler(0))))
+    thread.start()
+    thread.join()
+    return seen[0]
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="SVT-AV1 raises only root's threads to real-time priority")
+def test_recording_leaves_the_thread_that_encoded_at_ordinary_priority(tmp_path):
+    """As root, lerobot's video codec (libsvtav1) leaves the thread that opened an encoder at
+    real-time SCHED_FIFO priority, which every process that thread starts inherits; each of zk0's
+    recorders (the synthetic owners' and the simulator's) puts the thread back."""
+    import av
+
+    from zk0.sim.record import record_demonstrations
+    from zk0.sim.tasks import SIM_SPECS
+
+    def encode():
+        with av.open(str(tmp_path / "raw.mp4"), "w") as container:
+            stream = container.add_stream("libsvtav1", rate=30)
+            stream.width, stream.height, stream.pix_fmt = 64, 64, "yuv420p"
+            frame = av.VideoFrame.from_ndarray(np.zeros((64, 64, 3), np.uint8), format="rgb24")
+            for packet in [*stream.encode(frame), *stream.encode()]:
+                container.mux(packet)
+
+    assert policy_after(encode) == os.SCHED_FIFO, "SVT-AV1 no longer does this: zk0.common.machine.ordinary_scheduling can go"
+    spec = SPECS["synth-so101-reach"]
+    assert policy_after(lambda: write_synthetic_dataset(spec, tmp_path / "synth", seed=7, episodes=1)) == os.SCHED_OTHER
+    sim = SIM_SPECS["sim-so101-left"]
+    assert policy_after(lambda: record_demonstrations(sim, tmp_path / "sim", seed=0, episodes=1)) == os.SCHED_OTHER

@@ -7,6 +7,9 @@ per-user folder before it becomes Flower's SuperNode (the process id stays the s
 before each message its client takes the CPUs this process may use divided by the SuperNodes
 alive now (``cpus_now``). A SuperNode alone gets the whole machine; a second one started
 beside it halves both from their next message on.
+
+Real-time priority is the other way one process takes a machine: ``ordinary_scheduling`` keeps
+the video encoder from leaving it behind.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from __future__ import annotations
 import os
 import stat
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import psutil
@@ -84,3 +89,20 @@ def cpus_now() -> int | None:
     if SHARED in os.environ:
         return max(1, affinity() // max(1, alive(Path(os.environ[SHARED]))))
     return None
+
+
+@contextmanager
+def ordinary_scheduling() -> Iterator[None]:
+    """The block, then this thread's scheduling policy as it was before it.
+
+    SVT-AV1 (``libsvtav1``, lerobot's video codec), run as root, switches the thread that opens an
+    encoder to real-time ``SCHED_FIFO`` priority 99 and leaves it there. Every process that thread
+    starts afterwards inherits it: a benchmark that recorded its demonstrations and then started a
+    federation ran the SuperLink, the server and Ray's actors at real-time priority, and the
+    pytest run beside it got 2% of the CPU (2026-12-07). So zk0 wraps each episode it encodes."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        yield
+    finally:
+        if os.sched_getscheduler(0) != policy:
+            os.sched_setscheduler(0, policy, param)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from zk0.common import machine
 from zk0.sim.env import JOINTS, PickCubeEnv, privileged_names
 from zk0.sim.expert import PickExpert
 from zk0.sim.tasks import CAMERAS, DemoSpec, SimTask
@@ -82,7 +83,8 @@ def record_demonstrations(spec: DemoSpec, root: Path, seed: int, episodes: int |
                 continue
             for frame in frames:
                 dataset.add_frame(frame)
-            dataset.save_episode(parallel_encoding=False)
+            with machine.ordinary_scheduling():  # libsvtav1 would leave this thread real-time
+                dataset.save_episode(parallel_encoding=False)
             kept += 1
         dataset.finalize()
     finally:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from zk0.common import machine
 from zk0.common.catalogue import Catalogue
 
 JOINT_NAMES = (
@@ -312,5 +313,6 @@ def _record(dataset, spec: SyntheticSpec, rng: np.random.Generator, n_episodes: 
                 frame[f"observation.images.{cam}"] = _render(spec, index, u, v, COLOURS[colour], state, rng)
             dataset.add_frame(frame)
             state = action
-        dataset.save_episode(parallel_encoding=False)
+        with machine.ordinary_scheduling():  # libsvtav1 would leave this thread real-time
+            dataset.save_episode(parallel_encoding=False)
     dataset.finalize()
