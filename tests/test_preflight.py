@@ -14,6 +14,7 @@ from flwr.app import ArrayRecord, ConfigRecord, Context, Message, RecordDict
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from zk0.cli import main as zk0_main
+from zk0.common import machine
 from zk0.config import from_run_config
 from zk0.data.registry import load_registry
 from zk0.learning.preflight import check_federation
@@ -62,7 +63,8 @@ def write_dataset(
             for cam in cameras:
                 frame[f"observation.images.{cam}"] = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)
             dataset.add_frame(frame)
-        dataset.save_episode(parallel_encoding=False)
+        with machine.ordinary_scheduling():  # as zk0's recorders: libsvtav1 would leave it real-time
+            dataset.save_episode(parallel_encoding=False)
     dataset.finalize()
     return root
 

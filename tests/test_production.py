@@ -15,6 +15,7 @@ import pytest
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
 from zk0.cli import main as zk0_main
+from zk0.common import machine
 from zk0.config import RunConfig
 from zk0.data.assets import ensure_dataset
 from zk0.data.loaders import DataError, open_metadata
@@ -116,6 +117,7 @@ def test_resume_after_sigkill_finishes_every_round_once(tmp_path, hub_home):
     assert lrs == sorted(lrs, reverse=True) and len(set(lrs)) == 4, lrs
 
 
+@pytest.mark.slow  # a process of its own, which imports lerobot
 def test_hub_style_entry_opens_from_lerobot_home(hub_home):
     home, registry = hub_home
     script = (
@@ -161,7 +163,8 @@ def test_dataset_without_joint_state_is_refused_with_its_name(tmp_path, registry
                 "task": "t",
             }
         )
-    dataset.save_episode(parallel_encoding=False)
+    with machine.ordinary_scheduling():  # as zk0's recorders: libsvtav1 would leave it real-time
+        dataset.save_episode(parallel_encoding=False)
     dataset.finalize()
     entry = DatasetEntry(
         repo_id="someone/no_state", name="no-state", root=str(tmp_path / "no_state"), cameras={"front": "camera1"}
