@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import re
 import shlex
+import signal
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from unittest import mock
 
 import pytest
 
@@ -47,21 +50,36 @@ ELSEWHERE = {
 }
 
 
-# lerobot-rollout's console-script entry point (lerobot.scripts.lerobot_rollout:main): plugin
-# registration, then lerobot's parser over RolloutConfig, whose __post_init__ reads the policy config
-# named by --policy.path. It stops where build_rollout_context would load the weights and connect
-# the robot; tests/test_rollout.py runs that part on a zk0 checkpoint with a synthetic SO-101.
-ROLLOUT_UNTIL_ROBOT = """
-import sys
-import lerobot.scripts.lerobot_rollout as cli
+# lerobot-rollout's console-script entry point (lerobot.scripts.lerobot_rollout:main), in this process:
+# plugin registration, then lerobot's parser over RolloutConfig, whose __post_init__ reads the policy
+# config named by --policy.path. It stops where build_rollout_context would load the weights and
+# connect the robot; tests/test_rollout.py runs that part on a zk0 checkpoint with a synthetic SO-101.
+def rollout_until_robot(argv: list[str]) -> int:
+    """``lerobot-rollout argv`` up to the robot. What its entry point sets for the whole process is
+    put back afterwards: the root logger's handlers (lerobot's init_logging replaces them) and the
+    signal handlers (its ProcessSignalHandler installs its own)."""
+    import lerobot.scripts.lerobot_rollout as cli
 
-def build_rollout_context(cfg, shutdown_event):
-    print(f"{cfg.strategy.type} rollout of {cfg.policy.type} from {cfg.policy.pretrained_path} on {cfg.robot.port}")
-    sys.exit(0)
+    def build_rollout_context(cfg, shutdown_event):
+        print(f"{cfg.strategy.type} rollout of {cfg.policy.type} from {cfg.policy.pretrained_path} on {cfg.robot.port}")
+        raise SystemExit(0)
 
-cli.build_rollout_context = build_rollout_context
-cli.main()
-"""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    signals = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)}
+    try:
+        with (
+            mock.patch.object(cli, "build_rollout_context", build_rollout_context),
+            mock.patch.object(sys, "argv", ["lerobot-rollout", *argv]),
+        ):
+            cli.main()
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+        for sig, handler in signals.items():
+            signal.signal(sig, handler)
+    print("lerobot-rollout ended before it would have connected the robot", file=sys.stderr)
+    return 1
 
 
 def documented_commands() -> list[tuple[str, str]]:
@@ -221,8 +239,7 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
     if tokens[0] == "lerobot-rollout":
         policy = next(token.split("=", 1)[1] for token in tokens if token.startswith("--policy.path="))
         checkpoint_config(workspace / policy)  # the run folder's checkpoint the example names
-        command = [sys.executable, "-c", ROLLOUT_UNTIL_ROBOT, *tokens[1:]]
-        return subprocess.run(command, cwd=workspace, capture_output=True, text=True, timeout=300, check=False)
+        return in_this_process(rollout_until_robot, tokens[1:], cwd=workspace)
     if tokens[:2] == ["MUJOCO_GL=egl", "lerobot-eval"]:  # run for real in tests/test_sim.py
         command = [str(BIN / "lerobot-eval"), *tokens[2:], "--help"]
         done = subprocess.run(command, cwd=PROJECT_ROOT, capture_output=True, text=True, timeout=120, check=False)
@@ -236,9 +253,11 @@ def exercise(tokens: list[str], workspace: Path) -> subprocess.CompletedProcess:
 
 def marked(doc: str, command: str):
     """`zk0 assets` of a simulated registry records its demonstrations, and of many owners generates
-    sixteen datasets (as does checking a run on them, which makes them first): the full suite's."""
+    sixteen datasets (as does checking a run on them, which makes them first), and `lerobot-eval`
+    is a process of its own importing lerobot: the full suite's."""
     makes_assets = command.startswith(("zk0 assets", "flwr run", "zk0 pretrain"))
     slow = makes_assets and ("sim" in command or "owners" in command or "public" in command)
+    slow = slow or "lerobot-eval" in command
     return pytest.param(doc, command, marks=[pytest.mark.slow] if slow else [], id=f"{doc}:{command[:60]}")
 
 

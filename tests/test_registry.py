@@ -158,6 +158,7 @@ def test_loader_workers_follow_the_client_cpus(monkeypatch):
         assert loader_workers(RunConfig(num_workers=-1)) == workers, cpus
 
 
+@pytest.mark.slow  # a process of its own, which imports lerobot
 def test_spawned_workers_give_the_same_batches(registry):
     from zk0.data.loaders import eval_loader, open_split
     from zk0.learning.policy import policy_config, resolve_device

@@ -259,6 +259,7 @@ def test_lerobots_env_config_refuses_unknown_conditions_in_one_sentence():
     assert PickCubeEnvConfig(conditions="sim-so101-left").gym_kwargs["conditions"] == "sim-so101-left"
 
 
+@pytest.mark.slow  # a process of its own, which imports lerobot
 def test_a_machine_that_cannot_render_says_so_in_one_sentence():
     code = (
         "from zk0.sim import RenderError\n"
