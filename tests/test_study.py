@@ -450,3 +450,25 @@ def test_a_new_owner_trains_from_the_global_model_and_alone_on_its_own_demonstra
         assert moved, f"{label} trained from where it starts"
     assert kept.folder == tmp_path / "new-owner" / "sim-so101-owner-16-sort-cube-3-demos-2-steps"
     assert sorted(p.name for p in (kept.folder / "models").glob("*")) == ["alone.safetensors", "from-global.safetensors"]
+
+
+def test_a_stopped_federation_continues_from_its_newest_complete_checkpoint(tmp_path, registry):
+    """What a study or benchmark passes its federation beside its own keys: a checkpoint every round
+    and, once stopped, `resume-from` the newest run of its folder with a complete checkpoint (zk0's
+    resume ends as an uninterrupted run: tests/test_federation.py); a run stopped before its first
+    checkpoint is removed."""
+    from zk0.artifacts.run_folder import save_checkpoint
+    from zk0.bench.models import continuation
+    from zk0.config import RunConfig
+    from zk0.data.loaders import open_metadata
+
+    folder = tmp_path / "federation-nesterov"
+    assert continuation(folder) == {"checkpoint-interval": 1}, "a first run starts afresh"
+    entry = registry.clients[0]
+    bundle = build_policy(RunConfig(device="cpu"), open_metadata(entry), entry, registry.model_cameras())
+    for name, rounds in (("2026-12-07_10-00-00", (1, 2)), ("2026-12-07_11-00-00", (1,)), ("2026-12-07_12-00-00", ())):
+        (folder / name / "server").mkdir(parents=True)
+        for rnd in rounds:
+            save_checkpoint(bundle, folder / name, rnd, {})
+    assert continuation(folder) == {"checkpoint-interval": 1, "resume-from": str(folder / "2026-12-07_11-00-00")}
+    assert sorted(p.name for p in folder.iterdir()) == ["2026-12-07_10-00-00", "2026-12-07_11-00-00"]

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 
 from zk0.artifacts.resume import find_resume_point
+from zk0.artifacts.run_folder import checkpoints
 from zk0.bench.stash import Stash
 from zk0.common.errors import positive
 from zk0.config import OFFLINE_MODELS, RunConfig
@@ -69,14 +70,28 @@ def federate(args, rounds: int, name: str, **keys) -> dict | None:
     return history
 
 
+def continuation(folder: Path) -> dict:
+    """The run-config keys of a benchmark's federation in ``folder`` (its own): a checkpoint every
+    round and, where a stopped benchmark left a run with a complete checkpoint, ``resume-from``
+    the newest such run. zk0's resume ends with the model an uninterrupted run ends with
+    (tests/test_federation.py), so a study stopped in round 15 of 20 loses at most a round, not
+    hours. A run stopped before its first checkpoint holds nothing to keep and is removed."""
+    runs = sorted(run.parent for run in folder.glob("*/server"))
+    for run in runs:
+        if not checkpoints(run):
+            shutil.rmtree(run)
+    stopped = [run for run in runs if run.exists()]
+    return {"checkpoint-interval": 1, **({"resume-from": str(stopped[-1])} if stopped else {})}
+
+
 def kept_federation(args, stash: Stash, clients: int, keys: dict, server_bundle) -> Weights:
     """A federation of ``clients`` through ``flwr run`` (``keys``: its run config beyond ``federate``'s)
-    and its final global model, both kept in ``stash``: a stopped benchmark starts the federation
-    over, a finished one is taken from the folder."""
+    and its final global model, both kept in ``stash``: a stopped benchmark continues the federation
+    (``continuation``), a finished one is taken from the folder."""
     if not stash.has("federation"):
         folder = stash.folder / "federation"
-        shutil.rmtree(folder, ignore_errors=True)  # what a stopped run left
         sized = argparse.Namespace(**{**vars(args), "clients": clients})
+        keys = {**keys, **continuation(folder)}
         history = federate(sized, args.rounds, str(folder.relative_to(Path(args.output_dir))), **keys)
         if history is None:
             raise SystemExit(1)

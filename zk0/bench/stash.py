@@ -4,7 +4,8 @@ The sim-cube study trains a dozen models per training seed and rolls each out on
 episodes: two and a half hours on a 2-core machine. A ``Stash`` keeps each trained model's weights
 and each finished figure (a rollout's outcomes, an offline evaluation) under its folder as soon as
 it exists, written to a temporary name and renamed, so a stopped run leaves only complete files;
-run again, the benchmark takes them instead of training or rolling out again. Whatever the
+run again, the benchmark takes them instead of training or rolling out again, and a federation
+stopped part-way continues from its last round (zk0.bench.models.continuation). Whatever the
 stash does not have is computed exactly as an uninterrupted run computes it, so the figures are
 the same either way (the study resets every data order before each model: zk0.bench.study).
 

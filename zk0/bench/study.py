@@ -55,7 +55,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 import time
 from collections.abc import Callable
@@ -71,6 +70,7 @@ from zk0.bench.models import (
     Weights,
     centralised,
     closed_loop_all,
+    continuation,
     evaluate_all,
     evaluation_sets,
     federate,
@@ -164,7 +164,7 @@ def federated_models(
         name = f"federation {label}"
         if not stash.has(name):
             folder = stash.folder / f"federation-{label.lower()}"
-            shutil.rmtree(folder, ignore_errors=True)  # what a stopped run left: a federation starts over
+            keys = {**keys, **continuation(folder)}  # a stopped one continues from its last round
             history = federate(args, args.rounds, str(folder.relative_to(Path(args.output_dir))), **keys)
             if history is None:
                 return None
