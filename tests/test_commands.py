@@ -150,3 +150,45 @@ def test_bench_help_exits_0_with_usage(benchmark, capsys):
 def test_a_bad_argument_exits_2_with_one_sentence(call, argv, sentence, capsys):
     assert exit_code(call, argv) == 2
     assert capsys.readouterr().err == sentence + "\n"
+
+
+@pytest.mark.e2e
+def test_a_killed_benchmark_stops_the_federation_it_started(tmp_path):
+    """`kill` (SIGTERM) to a benchmark while its federation trains: the benchmark exits 143 and
+    every process it started (`flwr run`, the SuperLink, the ServerApp, Ray's) is gone soon after."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    command = [sys.executable, "-m", "zk0.bench", "round", "--local-steps", "100000", "--output-dir", str(tmp_path)]
+    benchmark = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+
+    def started() -> list[psutil.Process]:
+        tree = psutil.Process(benchmark.pid).children(recursive=True)
+        names = []
+        for process in tree:
+            try:
+                names.append(process.name())
+            except psutil.NoSuchProcess:
+                pass
+        return tree if any(name.startswith("ray::ClientApp") for name in names) else []
+
+    tree: list[psutil.Process] = []
+    try:
+        while not (tree := started()):
+            assert benchmark.poll() is None and time.monotonic() < deadline, benchmark.stderr.read()[-3000:]
+            time.sleep(0.5)
+        benchmark.send_signal(signal.SIGTERM)
+        assert benchmark.wait(timeout=120) == 128 + signal.SIGTERM
+        _, alive = psutil.wait_procs(tree, timeout=30)
+        assert not alive, [" ".join(p.cmdline()) for p in alive if p.is_running()]
+    finally:  # a failure leaves no federation training on beside the rest of the suite
+        for process in [psutil.Process(benchmark.pid), *tree] if benchmark.poll() is None else tree:
+            try:
+                process.kill()
+            except psutil.NoSuchProcess:
+                pass
