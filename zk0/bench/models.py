@@ -76,11 +76,12 @@ def continuation(folder: Path) -> dict:
     the newest such run. zk0's resume ends with the model an uninterrupted run ends with
     (tests/test_federation.py), so a study stopped in round 15 of 20 loses at most a round, not
     hours. A run stopped before its first checkpoint holds nothing to keep and is removed."""
-    runs = sorted(run.parent for run in folder.glob("*/server"))
-    for run in runs:
-        if not checkpoints(run):
+    stopped = []
+    for run in sorted(run.parent for run in folder.glob("*/server")):
+        if checkpoints(run):
+            stopped.append(run)
+        else:
             shutil.rmtree(run)
-    stopped = [run for run in runs if run.exists()]
     return {"checkpoint-interval": 1, **({"resume-from": str(stopped[-1])} if stopped else {})}
 
 
