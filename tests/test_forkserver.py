@@ -1,6 +1,8 @@
 """The SuperExec's fork server: each ClientApp process is Flower's `flwr-clientapp` with the
-arguments Flower chose, forked from a process that imported Flower once. (The loopback deployment
-test runs whole federations through it, with TLS, authentication and the submitted code.)"""
+arguments Flower chose, forked from a process that imported Flower once, and each simulation's
+process `flwr-simulation`, forked from one that imported PyTorch and lerobot too. (The loopback
+deployment test runs whole federations through the first, with TLS, authentication and the
+submitted code; every simulated federation of the suite runs through the second.)"""
 
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ def wait_for(capfd, text: str, timeout: float = 60) -> str:
     deadline = time.monotonic() + timeout
     while text not in seen and time.monotonic() < deadline:
         time.sleep(0.1)
-        seen += capfd.readouterr().out
+        seen += "".join(capfd.readouterr())  # what the children printed, and what they logged
     return seen
 
 
@@ -54,7 +56,42 @@ def test_zk0s_supernode_starts_zk0s_superexec_with_flowers_arguments(monkeypatch
 
     monkeypatch.setattr(loop, "subprocess", loop.subprocess)  # this process's loop gets Flower's back afterwards
     internals.start_superexec_as([sys.executable, "-c", "import sys; print('superexec', sys.argv[1:])"])
-    assert loop.subprocess.Popen(["flower-superexec", "--insecure", "--parent-pid", "1"]) is None
+    assert loop.subprocess.Popen(["flower-superexec", "--insecure", "--parent-pid", "1"]).wait(timeout=30) == 0
     assert "superexec ['--insecure', '--parent-pid', '1']" in wait_for(capfd, "superexec")
     other = loop.subprocess.Popen([sys.executable, "-c", "print('other')"], stdout=subprocess.PIPE, text=True)
     assert other.communicate(timeout=30)[0] == "other\n", "other commands start as they did"
+
+
+def test_a_superlinks_fork_server_runs_simulations_and_serverapps_with_torch_and_lerobot_loaded(capfd):
+    """The SuperLink's fork server (``server``) forks ``flwr-simulation`` and ``flwr-serverapp`` as
+    Flower's own commands, from a process that has imported the ServerApp's libraries. A
+    SuperNode's starts ClientApps only."""
+    server = ForkServer(server=True)
+    try:
+        for command in ("flwr-simulation", "flwr-serverapp"):
+            assert server.start([command, "--help"], quiet=False)
+            assert f"usage: {command}" in wait_for(capfd, f"usage: {command}", timeout=180), command
+    finally:
+        server.process.stdin.close()
+    assert server.process.wait(timeout=30) == 0
+    supernodes = ForkServer()
+    try:
+        assert supernodes.start(["flwr-simulation", "--help"], quiet=False)
+        said = wait_for(capfd, "not 'flwr-simulation'")
+        assert "zk0: this fork server starts flwr-clientapp, not 'flwr-simulation'." in said, said
+    finally:
+        supernodes.process.stdin.close()
+    assert supernodes.process.wait(timeout=30) == 0
+
+
+def test_zk0s_superlink_starts_zk0s_superexec_for_servers_with_flowers_arguments(monkeypatch, capfd):
+    import importlib
+
+    from zk0 import internals
+
+    link = importlib.import_module("flwr.superlink.cli.flower_superlink")
+    monkeypatch.setattr(link, "subprocess", link.subprocess)  # Flower's comes back afterwards
+    internals.start_superlinks_superexec_as([sys.executable, "-c", "import sys; print('superexec', sys.argv[1:])"])
+    started = link.subprocess.Popen(["flower-superexec", "--insecure", "--parent-pid", "1"])
+    assert started.wait(timeout=30) == 0, "the SuperLink keeps the handle it stops its SuperExec with"
+    assert "superexec ['--insecure', '--parent-pid', '1']" in wait_for(capfd, "superexec")

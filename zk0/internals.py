@@ -8,6 +8,7 @@ reshapes one, instead of letting the frame cache or the LR schedule break quietl
 
 from __future__ import annotations
 
+import importlib
 import inspect
 import subprocess
 import time
@@ -111,14 +112,30 @@ def shorten_object_pull_backoff(initial_s: float = PULL_RETRY_S) -> None:
 
 class _Starts:
     """The ``subprocess`` module as one of Flower's modules sees it, where ``start(args, kwargs)``
-    may start the process named ``name`` its own way (True) or leave it to ``subprocess.Popen``."""
+    may start a process named in ``names`` its own way (True) or leave it to ``subprocess.Popen``."""
 
-    def __init__(self, name: str, start: Callable[[list[str], dict], bool]):
-        self.name, self.start = name, start
+    def __init__(self, names: set[str], start: Callable[[list[str], dict], bool]):
+        self.names, self.start = names, start
 
     def Popen(self, args, **kwargs):  # noqa: N802 (subprocess's name)
-        if args[0] == self.name and self.start(list(args), kwargs):
+        if args[0] in self.names and self.start(list(args), kwargs):
             return None  # Flower keeps no handle on the processes it starts here
+        return subprocess.Popen(args, **kwargs)
+
+    def __getattr__(self, name: str):
+        return getattr(subprocess, name)
+
+
+class _Renames:
+    """The ``subprocess`` module as one of Flower's modules sees it, where the command ``name``
+    runs as ``command`` (with Flower's arguments), and Flower keeps the process's handle."""
+
+    def __init__(self, name: str, command: list[str]):
+        self.name, self.command = name, command
+
+    def Popen(self, args, **kwargs):  # noqa: N802 (subprocess's name)
+        if args[0] == self.name:
+            args = [*self.command, *args[1:]]
         return subprocess.Popen(args, **kwargs)
 
     def __getattr__(self, name: str):
@@ -128,23 +145,32 @@ class _Starts:
 def start_superexec_as(command: list[str]) -> None:
     """Make this process's SuperNode start ``command`` + Flower's arguments as its SuperExec,
     instead of ``flower-superexec`` (isolation ``subprocess``; no flag names the command)."""
-
-    def start(args: list[str], kwargs: dict) -> bool:
-        subprocess.Popen([*command, *args[1:]], **kwargs)
-        return True
-
-    supernode_loop.subprocess = _Starts("flower-superexec", start)
+    supernode_loop.subprocess = _Renames("flower-superexec", command)
 
 
-def start_clientapps_with(start: Callable[[list[str], bool], bool]) -> None:
-    """Make this process's SuperExec hand each ``flwr-clientapp`` command (and whether Flower
-    silences its output) to ``start``, which returns False to leave it to ``subprocess.Popen``.
-    Flower's subprocess executor has no hook for how a task's process starts."""
+def start_superlinks_superexec_as(command: list[str]) -> None:
+    """Make this process's SuperLink start ``command`` + Flower's arguments as its SuperExec,
+    instead of ``flower-superexec`` (isolation ``subprocess``; no flag names the command)."""
+    _superlink_main().subprocess = _Renames("flower-superexec", command)
 
-    def start_clientapp(args: list[str], kwargs: dict) -> bool:
+
+def _superlink_main():
+    """``flwr.superlink.cli.flower_superlink``, the module (its package exports the function of
+    the same name in its place), imported only where a SuperLink runs."""
+    return importlib.import_module("flwr.superlink.cli.flower_superlink")
+
+
+def start_tasks_with(task_types: list[TaskType], start: Callable[[list[str], bool], bool]) -> None:
+    """Make this process's SuperExec hand each command of ``task_types`` (``flwr-clientapp``,
+    ``flwr-serverapp``, ``flwr-simulation``: its whole command line) and whether Flower silences
+    its output to ``start``, which returns False to leave it to ``subprocess.Popen``. Flower's
+    subprocess executor has no hook for how a task's process starts."""
+
+    def start_task(args: list[str], kwargs: dict) -> bool:
         return start(args, kwargs.get("stdout") is subprocess.DEVNULL)
 
-    subprocess_executor.subprocess = _Starts(TASK_TYPE_TO_COMMAND[TaskType.CLIENT_APP], start_clientapp)
+    names = {TASK_TYPE_TO_COMMAND[task_type] for task_type in task_types}
+    subprocess_executor.subprocess = _Starts(names, start_task)
 
 
 def check() -> None:
@@ -170,11 +196,17 @@ def check() -> None:
     superexec = ("\nimport subprocess\n", 'command = ["flower-superexec"]', "subprocess.Popen(command)")
     if not all(part in loop for part in superexec):
         problems.append('flwr.supernode.start_client_internal\'s `subprocess.Popen(["flower-superexec", ...])`')
+    link = inspect.getsource(_superlink_main())
+    if not all(part in link for part in ("\nimport subprocess\n", 'command = ["flower-superexec"]',
+                                         "subprocess.Popen(command, ")):  # fmt: skip
+        problems.append('flwr.superlink.cli.flower_superlink\'s `subprocess.Popen(["flower-superexec", ...], ...)`')
     executor = inspect.getsource(subprocess_executor)
     if "\nimport subprocess\n" not in executor or "subprocess.Popen(args)" not in executor:
         problems.append("flwr.supercore.superexec.executor.subprocess_executor's `subprocess.Popen(args)`")
-    if "stdout=subprocess.DEVNULL" not in executor or TASK_TYPE_TO_COMMAND[TaskType.CLIENT_APP] != "flwr-clientapp":
-        problems.append("SubprocessExecutor starting `flwr-clientapp` (output to subprocess.DEVNULL when suppressed)")
+    commands = {TASK_TYPE_TO_COMMAND[t] for t in (TaskType.CLIENT_APP, TaskType.SERVER_APP, TaskType.SIMULATION)}
+    if "stdout=subprocess.DEVNULL" not in executor or commands != {"flwr-clientapp", "flwr-serverapp", "flwr-simulation"}:
+        problems.append("SubprocessExecutor starting `flwr-clientapp`, `flwr-serverapp` and `flwr-simulation` "
+                        "(output to subprocess.DEVNULL when suppressed)")  # fmt: skip
     for name in _PULLS:
         defaults = getattr(getattr(inflatable_utils, name, None), "__kwdefaults__", None) or {}
         if "initial_backoff" not in defaults:

@@ -27,18 +27,24 @@ MIB = 2**20
 # In simulation flwr-simulation runs the ServerApp and the Simulation Engine, which holds the N
 # SuperNodes, and Ray's actors run the ClientApps. In a deployment flwr-serverapp runs the ServerApp
 # and each SuperNode's warm worker (zk0.deployment.worker) keeps its client; a SuperNode's own processes (its
-# SuperExec, fork server and the ClientApp process relaying each message) are "supernode".
+# SuperExec, fork server and the ClientApp process relaying each message) are "supernode". zk0's
+# simulation SuperLink forks each run's flwr-simulation from its SuperExec's fork server, whose
+# command line the child shows: the fork server itself ("fork server") holds the libraries the
+# child shares, so it is left out of the server side, which counts them in the child.
+FORK_SERVER = "zk0.deployment.forkserver --server"
 ROLES = {
     "ClientAppActor": "client",
     "zk0.deployment.worker": "client",
     "flwr-simulation": "simulation",
     "flwr-serverapp": "serverapp",
     "zk0.deployment.supernode": "supernode",
+    "zk0.deployment.superexec --server": "superexec",
     "zk0.deployment.superexec": "supernode",
     "zk0.deployment.forkserver": "supernode",
     "flwr-clientapp": "supernode",
     "flower-superexec": "superexec",
     "flower-superlink": "superlink",
+    "zk0.deployment.superlink": "superlink",
 }
 SERVER_SIDE = ("superlink", "superexec", "simulation", "serverapp")
 
@@ -47,6 +53,9 @@ def role_of(process: psutil.Process) -> str:
     """A process's part in the federation (``ray`` for Ray's own daemons and workers, ``other`` for
     what is none of these, such as the ``zk0`` command that started a SuperLink or SuperNode)."""
     cmdline = " ".join(process.cmdline())
+    if FORK_SERVER in cmdline:
+        parent = process.parent()
+        return "simulation" if parent is not None and FORK_SERVER in " ".join(parent.cmdline()) else "fork server"
     return next((role for word, role in ROLES.items() if word in cmdline), "ray" if "ray" in cmdline else "other")
 
 

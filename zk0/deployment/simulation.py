@@ -7,7 +7,11 @@ SuperLink on the machine, and the SuperLink is stopped afterwards.
 
 `flwr run` starts a missing local SuperLink itself but gives it 15 s, which a 2-core machine
 already running another federation can exceed; so the SuperLink is started here first, with
-the command `flwr run` would use and a patient deadline, and `flwr run` finds it up.
+the arguments `flwr run` would use and a patient deadline, and `flwr run` finds it up. It is
+Flower's SuperLink run as ``python -m zk0.deployment.superlink``, which forks each run's
+``flwr-simulation`` from a process that has imported PyTorch and lerobot once: a benchmark's
+or a test worker's many federations each start about 10 s of CPU sooner. (``./train.sh`` runs
+the SuperLink `flwr run` starts, Flower's own, and the suite's quick-run tests run it that way.)
 """
 
 from __future__ import annotations
@@ -67,12 +71,12 @@ def local_federation(home: Path, extra_env: dict[str, str] | None = None) -> Ite
 
 
 def start_superlink(env: dict[str, str], timeout_s: float = 180.0) -> None:
-    """Start the private simulation SuperLink as `flwr run` would, and wait until it answers."""
+    """Start the private simulation SuperLink with the arguments `flwr run` would give it, and wait until it answers."""
     runtime = Path(env["FLWR_HOME"]) / "local-superlink"
     runtime.mkdir(parents=True, exist_ok=True)
     port = env["FLWR_LOCAL_SUPERLINK_HTTP_API_PORT"]
     command = [
-        "flower-superlink", "--insecure", "--simulation", "--isolation", "subprocess",
+        sys.executable, "-m", "zk0.deployment.superlink", "--insecure", "--simulation", "--isolation", "subprocess",
         "--control-api-address", f"127.0.0.1:{env['FLWR_LOCAL_CONTROL_API_PORT']}",
         "--host", "127.0.0.1", "--port", port,
         "--log-file", str(runtime / "superlink.log"), "--database", str(runtime / "state.db"),
@@ -84,9 +88,7 @@ def start_superlink(env: dict[str, str], timeout_s: float = 180.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:
-            raise RuntimeError(
-                f"flower-superlink exited with code {process.returncode}; see {runtime / 'superlink.log'}."
-            )
+            raise RuntimeError(f"The SuperLink exited with code {process.returncode}; see {runtime / 'superlink.log'}.")
         try:
             with direct.open(f"http://127.0.0.1:{port}/health", timeout=1.0):
                 return  # answered 2xx (urlopen raises on errors)
@@ -94,7 +96,7 @@ def start_superlink(env: dict[str, str], timeout_s: float = 180.0) -> None:
             pass
         time.sleep(0.2)
     process.kill()
-    raise RuntimeError(f"flower-superlink did not answer within {timeout_s:.0f} s; see {runtime / 'superlink.log'}.")
+    raise RuntimeError(f"The SuperLink did not answer within {timeout_s:.0f} s; see {runtime / 'superlink.log'}.")
 
 
 def superlink_tree(env: dict[str, str]) -> list[psutil.Process]:
@@ -102,7 +104,7 @@ def superlink_tree(env: dict[str, str]) -> list[psutil.Process]:
     marker = f"--port {env['FLWR_LOCAL_SUPERLINK_HTTP_API_PORT']}"
     for proc in psutil.process_iter(["cmdline"]):
         cmdline = " ".join(proc.info["cmdline"] or [])
-        if "flower-superlink" in cmdline and marker in cmdline:
+        if "zk0.deployment.superlink" in cmdline and marker in cmdline:
             return [proc, *proc.children(recursive=True)]
     return []
 
