@@ -10,6 +10,8 @@ import subprocess
 import sys
 import time
 
+import pytest
+
 from zk0.deployment.forkserver import ForkServer
 
 
@@ -62,6 +64,7 @@ def test_zk0s_supernode_starts_zk0s_superexec_with_flowers_arguments(monkeypatch
     assert other.communicate(timeout=30)[0] == "other\n", "other commands start as they did"
 
 
+@pytest.mark.slow  # its fork server imports lerobot
 def test_a_superlinks_fork_server_runs_simulations_and_serverapps_with_torch_and_lerobot_loaded(capfd):
     """The SuperLink's fork server (``server``) forks ``flwr-simulation`` and ``flwr-serverapp`` as
     Flower's own commands, from a process that has imported the ServerApp's libraries. A
