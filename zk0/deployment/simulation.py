@@ -100,11 +100,12 @@ def start_superlink(env: dict[str, str], timeout_s: float = 180.0) -> None:
 
 
 def superlink_tree(env: dict[str, str]) -> list[psutil.Process]:
-    """The SuperLink on this environment's port and every process under it (simulation, Ray)."""
+    """The SuperLink on this environment's port (zk0's, or the one `flwr run` started: ``./train.sh``'s)
+    and every process under it (simulation, Ray)."""
     marker = f"--port {env['FLWR_LOCAL_SUPERLINK_HTTP_API_PORT']}"
     for proc in psutil.process_iter(["cmdline"]):
         cmdline = " ".join(proc.info["cmdline"] or [])
-        if "zk0.deployment.superlink" in cmdline and marker in cmdline:
+        if ("zk0.deployment.superlink" in cmdline or "flower-superlink" in cmdline) and marker in cmdline:
             return [proc, *proc.children(recursive=True)]
     return []
 
