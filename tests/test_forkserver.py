@@ -9,6 +9,8 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
 
@@ -24,15 +26,22 @@ def wait_for(capfd, text: str, timeout: float = 60) -> str:
     return seen
 
 
-def test_a_forked_clientapp_runs_flowers_command_with_the_arguments_it_was_given(capfd):
-    server = ForkServer()
+@contextmanager
+def serving(server: bool = False) -> Iterator[ForkServer]:
+    """A fork server (a SuperLink's with ``server``), closed as its SuperExec's exit closes it."""
+    forks = ForkServer(server)
     try:
+        yield forks
+    finally:
+        forks.process.stdin.close()
+    assert forks.process.wait(timeout=30) == 0, "the fork server ends with its SuperExec's pipe"
+
+
+def test_a_forked_clientapp_runs_flowers_command_with_the_arguments_it_was_given(capfd):
+    with serving() as server:
         assert server.start(["flwr-clientapp", "--help"], quiet=False)
         printed = wait_for(capfd, "--runtime-api-address")
         assert "usage: flwr-clientapp" in printed, printed
-    finally:
-        server.process.stdin.close()
-    assert server.process.wait(timeout=30) == 0, "the fork server ends with its SuperExec's pipe"
 
 
 def test_without_its_fork_server_the_superexec_starts_clientapps_as_flower_does():
@@ -69,22 +78,14 @@ def test_a_superlinks_fork_server_runs_simulations_and_serverapps_with_torch_and
     """The SuperLink's fork server (``server``) forks ``flwr-simulation`` and ``flwr-serverapp`` as
     Flower's own commands, from a process that has imported the ServerApp's libraries. A
     SuperNode's starts ClientApps only."""
-    server = ForkServer(server=True)
-    try:
+    with serving(server=True) as server:
         for command in ("flwr-simulation", "flwr-serverapp"):
             assert server.start([command, "--help"], quiet=False)
             assert f"usage: {command}" in wait_for(capfd, f"usage: {command}", timeout=180), command
-    finally:
-        server.process.stdin.close()
-    assert server.process.wait(timeout=30) == 0
-    supernodes = ForkServer()
-    try:
+    with serving() as supernodes:
         assert supernodes.start(["flwr-simulation", "--help"], quiet=False)
         said = wait_for(capfd, "not 'flwr-simulation'")
         assert "zk0: this fork server starts flwr-clientapp, not 'flwr-simulation'." in said, said
-    finally:
-        supernodes.process.stdin.close()
-    assert supernodes.process.wait(timeout=30) == 0
 
 
 def test_zk0s_superlink_starts_zk0s_superexec_for_servers_with_flowers_arguments(monkeypatch, capfd):
