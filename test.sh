@@ -2,10 +2,10 @@
 # Set up .venv (as ./train.sh does) and run the test suite in parallel, offline, with a
 # temporary directory and a Flower home that start empty, as a new machine's do (an earlier
 # run's leftovers once hid a fault that every new machine showed). Both are removed afterwards.
-#   ./test.sh          the whole suite (~41 min on 2 cores, after the set-up and the image build;
+#   ./test.sh          the whole suite (~24 min on 2 cores, after the set-up and the image build;
 #                      each test's allowance in seconds: tests/README.md)
 #   ./test.sh --fast   all but the federations, deployments and other slow tests (markers
-#                      in pyproject.toml; ~3 min)
+#                      in pyproject.toml; ~2 min)
 # Other arguments go to pytest, e.g. ./test.sh --fast -k config
 set -euo pipefail
 source "$(dirname "$0")/scripts/setup.sh"
