@@ -5,7 +5,7 @@ a SuperNode (both isolation modes, flwr 1.41-1.43), a ``flwr-serverapp`` or ``fl
 for every run on a SuperLink. Each pays Python's start and its imports before it does anything:
 Flower's (FastAPI, SQLAlchemy, httpx, the protobufs; about a second of CPU, two on a busy machine)
 for a ClientApp, every round; Flower's, PyTorch's and lerobot's (about 10 s of CPU on 2 cores, of
-a minimal two-round simulation's 30) for a ServerApp, every run. zk0's SuperExec
+the 39 a minimal two-round simulation took) for a ServerApp, every run. zk0's SuperExec
 (``python -m zk0.deployment.superexec``) keeps a fork server: a process that imported those
 once and forks a child per task, which runs Flower's command with the arguments Flower chose
 (its token, TLS, parent pid).
@@ -14,9 +14,9 @@ The child is still Flower's task process: it pulls the task, unpacks the submitt
 imports the app's code from it. The fork server holds only third-party modules and no ``zk0``
 module a child could reuse (each child forgets them before Flower loads the app), so the code
 that runs is the submitted app's, and the app fingerprint check sees it. The fork server starts
-no thread of its own (a library may start a helper, such as jemalloc's, which is safe across a
-fork, as PyTorch's DataLoader workers rely on), so forking it is safe; a child resets the signals
-and output the fork server changed.
+no thread of its own (a library it imports may start a helper thread, such as jemalloc's
+background thread, which registers its own fork handlers), so forking it is safe; a child resets
+the signals and output the fork server changed.
 """
 
 from __future__ import annotations
