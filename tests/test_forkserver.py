@@ -6,12 +6,15 @@ submitted code; every simulated federation of the suite runs through the second.
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
+import psutil
 import pytest
 
 from zk0.deployment.forkserver import ForkServer
@@ -99,3 +102,66 @@ def test_zk0s_superlink_starts_zk0s_superexec_for_servers_with_flowers_arguments
     started = link.subprocess.Popen(["flower-superexec", "--insecure", "--parent-pid", "1"])
     assert started.wait(timeout=30) == 0, "the SuperLink keeps the handle it stops its SuperExec with"
     assert "superexec ['--insecure', '--parent-pid', '1']" in wait_for(capfd, "superexec")
+
+
+@contextmanager
+def ray_worker_server() -> Iterator[str]:
+    """A Ray worker fork server, forked from a process of its own as a SuperLink's fork server
+    forks it; its socket's path. It ends within a second of that process."""
+    host = subprocess.Popen(
+        [sys.executable, "-c", "from zk0.deployment.forkserver import start_ray_worker_server as s; "
+         "print(s(), flush=True); import sys; sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        yield host.stdout.readline().strip()
+    finally:
+        host.stdin.close()
+        host.wait(timeout=30)
+
+
+WORKER = """import os, sys, time
+print(sys.argv[1:], os.environ["RAY_JOB_ID"], os.getcwd(), os.getpid(), flush=True)
+print("said on stderr", file=sys.stderr, flush=True)
+if sys.argv[1] == "--wait":
+    time.sleep(600)
+sys.exit(3)
+"""
+
+
+def test_a_ray_worker_is_forked_with_rays_arguments_environment_folder_and_output_and_dies_with_its_starter(tmp_path):
+    """Ray starts a simulation's worker as ``rayworker`` + its worker script and arguments: the
+    worker runs forked from the fork server, as ``python <script> <arguments>`` would, with the
+    environment, folder and output files Ray gave; the ``rayworker`` exits with its code, and
+    killing the ``rayworker`` (as Ray stops a worker that has not registered) kills the worker.
+    Without the fork server, the worker starts as Ray would start it."""
+    from zk0.deployment import rayworker
+
+    script = tmp_path / "default_worker.py"
+    script.write_text(WORKER)
+    (tmp_path / "run").mkdir()
+    env = {**os.environ, "RAY_JOB_ID": "01000000"}
+    starter = [sys.executable, "-m", "zk0.deployment.rayworker", str(script)]
+    with ray_worker_server() as path:
+        assert path.endswith("workers.sock"), path
+        env[rayworker.SOCKET_ENV] = path
+        with (tmp_path / "worker.out").open("w") as out, (tmp_path / "worker.err").open("w") as err:
+            started = subprocess.Popen([*starter, "--a=1"], env=env, cwd=tmp_path / "run", stdout=out, stderr=err)
+            assert started.wait(timeout=60) == 3, "the worker's exit code"
+        said = (tmp_path / "worker.out").read_text().split()
+        assert said[:3] == ["['--a=1']", "01000000", str(tmp_path / "run")], said
+        assert int(said[3]) != started.pid, "forked, not started by the rayworker"
+        assert (tmp_path / "worker.err").read_text() == "said on stderr\n"
+
+        waiting = subprocess.Popen([*starter, "--wait"], env=env, stdout=subprocess.PIPE, text=True)
+        worker = psutil.Process(int(waiting.stdout.readline().split()[-1]))
+        waiting.kill()
+        worker.wait(timeout=10)  # raises if it outlives its rayworker
+    deadline = time.monotonic() + 10
+    while Path(path).parent.exists() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not Path(path).parent.exists(), "the fork server ends with its parent and removes its socket"
+
+    del env[rayworker.SOCKET_ENV]
+    alone = subprocess.run([*starter, "--a=1"], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert alone.returncode == 3 and alone.stdout.split()[0] == "['--a=1']", alone.stderr

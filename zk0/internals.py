@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import json
+import os
 import subprocess
 import time
 from collections.abc import Callable
@@ -173,6 +175,19 @@ def start_tasks_with(task_types: list[TaskType], start: Callable[[list[str], boo
     subprocess_executor.subprocess = _Starts(names, start_task)
 
 
+# Ray's ``ray.init`` merges the job config in this variable (JSON; what ``ray job submit`` sets)
+# into the runtime environment it is given: Flower's Ray backend passes its own to ``ray.init``,
+# so this is the one way to add to it.
+RAY_JOB_CONFIG = "RAY_JOB_CONFIG_JSON_ENV_VAR"
+
+
+def start_ray_workers_with(command: str, env_vars: dict[str, str]) -> None:
+    """Make this process's simulation start each Ray worker as ``command`` + Ray's worker script
+    and arguments (Ray's ``py_executable``), with ``env_vars`` in its environment, in place of
+    ``python``; a job config already set (a run under ``ray job submit``) is left alone."""
+    os.environ.setdefault(RAY_JOB_CONFIG, json.dumps({"runtime_env": {"py_executable": command, "env_vars": env_vars}}))
+
+
 def check() -> None:
     """Raise, naming the installed versions, if a private name above is gone or changed shape."""
     from lerobot.datasets.dataset_reader import DatasetReader
@@ -211,9 +226,26 @@ def check() -> None:
         defaults = getattr(getattr(inflatable_utils, name, None), "__kwdefaults__", None) or {}
         if "initial_backoff" not in defaults:
             problems.append(f"flwr.supercore.inflatable.inflatable_utils.{name}(..., *, initial_backoff=...)")
+    problems += _check_ray()
     if "run_before_force_exit" not in inspect.signature(add_exit_handler).parameters:
         problems.append("flwr.supercore.exit.add_exit_handler(handler, run_before_force_exit=...)")
     if problems:
         raise RuntimeError(
-            f"zk0 relies on {', '.join(problems)}, which {versions} no longer has; update zk0/internals.py."
+            f"zk0 relies on {', '.join(problems)}, which {versions}, ray {version('ray')} no longer has; "
+            "update zk0/internals.py."
         )
+
+
+def _check_ray() -> list[str]:
+    """What :func:`start_ray_workers_with` needs of Ray, where it is missing."""
+    from ray._private import worker
+    from ray._private.runtime_env import constants
+    from ray._private.runtime_env.context import RuntimeEnvContext
+    from ray.runtime_env import RuntimeEnv
+
+    problems = []
+    if getattr(constants, "RAY_JOB_CONFIG_JSON_ENV_VAR", None) != RAY_JOB_CONFIG or RAY_JOB_CONFIG not in inspect.getsource(worker.init):
+        problems.append(f"ray.init merging the job config in ${RAY_JOB_CONFIG}")
+    if "py_executable" not in RuntimeEnv.known_fields or '["exec", self.py_executable]' not in inspect.getsource(RuntimeEnvContext.exec_worker):
+        problems.append("the runtime environment's py_executable, run as `exec <py_executable> <worker script> <args>`")
+    return problems

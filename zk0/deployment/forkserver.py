@@ -24,13 +24,20 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import runpy
+import selectors
 import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import warnings
+from pathlib import Path
 from typing import IO
 
 from loguru import logger
+
+from zk0.deployment import rayworker
 
 # What a zk0 ServerApp imports that takes seconds, loaded once by a SuperLink's fork server: only
 # third-party modules (the app's own come from the FAB). Neither MuJoCo (it chooses its GL
@@ -97,6 +104,7 @@ def serve(requests: IO[str], server: bool = False) -> None:
     internals.shorten_object_pull_backoff()  # the arrays a task pulls from its SuperNode or SuperLink
     _forget_zk0()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group: the SuperExec ends this
+    ray_workers = start_ray_worker_server() if server else None
     signal.signal(signal.SIGCHLD, _reap)
     for line in requests:
         request = json.loads(line)
@@ -108,6 +116,10 @@ def serve(requests: IO[str], server: bool = False) -> None:
             warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
             child = os.fork()
         if child == 0:
+            if ray_workers and request["args"][0] == "flwr-simulation":
+                internals.start_ray_workers_with(
+                    f"{sys.executable} -m zk0.deployment.rayworker", {rayworker.SOCKET_ENV: ray_workers}
+                )
             _run_task(command, request["args"], request["quiet"])
 
 
@@ -128,9 +140,163 @@ def _run_task(command, args: list[str], quiet: bool) -> None:
         command()
         code = 0
     except SystemExit as done:
-        code = done.code if isinstance(done.code, int) else (0 if done.code is None else 1)
+        code = _exit_code(done)
     except BaseException:
         logger.exception("The forked {} process failed", args[0])
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+
+
+def _exit_code(done: SystemExit) -> int:
+    return done.code if isinstance(done.code, int) else (0 if done.code is None else 1)
+
+
+def start_ray_worker_server() -> str | None:
+    """Fork the Ray worker fork server from this process (whose imports it shares), listening on a
+    socket in a private folder; return the socket's path, or None where the platform has no such
+    socket (then Ray starts its workers itself)."""
+    if not hasattr(socket, "SOCK_SEQPACKET") or sys.platform != "linux":
+        return None
+    path = Path(tempfile.mkdtemp(prefix="zk0-ray-")) / "workers.sock"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        listener.bind(str(path))
+    except OSError:  # a TMPDIR too long for a socket's path
+        listener.close()
+        path.parent.rmdir()
+        return None
+    listener.listen(16)
+    if os.fork() == 0:
+        try:
+            _serve_ray_workers(listener)
+        except SystemExit:
+            pass
+        except BaseException:
+            logger.exception("zk0: the Ray worker fork server failed; Ray starts its workers itself from now on")
+        finally:
+            path.unlink(missing_ok=True)
+            path.parent.rmdir()
+            os._exit(0)
+    listener.close()
+    return str(path)
+
+
+def _serve_ray_workers(listener: socket.socket) -> None:
+    """Fork a Ray worker for each connecting ``zk0.deployment.rayworker``, hand it the worker's exit
+    code, and kill a worker whose ``rayworker`` went (Ray killed it); end with the fork server."""
+    parent = os.getppid()
+    wake_read, wake_write = socket.socketpair()
+    wake_write.setblocking(False)
+    signal.set_wakeup_fd(wake_write.fileno())  # a SIGCHLD wakes the select below
+    signal.signal(signal.SIGCHLD, lambda *_: None)
+    signal.signal(signal.SIGTERM, _stop)  # stopping the SuperLink terminates its tree: remove the socket
+    selector = selectors.DefaultSelector()
+    selector.register(listener, selectors.EVENT_READ)
+    selector.register(wake_read, selectors.EVENT_READ)
+    workers: dict[int, socket.socket] = {}
+    while os.getppid() == parent:  # the fork server (parent) ends when its SuperExec does
+        for key, _ in selector.select(timeout=1.0):
+            if key.fileobj is listener:
+                conn = listener.accept()[0]
+                if pid := _fork_ray_worker(conn, [listener, wake_read, wake_write, *workers.values()]):
+                    workers[pid] = conn
+                    selector.register(conn, selectors.EVENT_READ, pid)
+            elif key.fileobj is wake_read:
+                wake_read.recv(4096)
+            else:  # the rayworker closed its end: Ray killed it
+                selector.unregister(key.fileobj)
+                _kill(key.data)
+        for pid, code in _exited():
+            if (conn := workers.pop(pid, None)) is not None:
+                _close(selector, conn, code)
+
+
+def _stop(_signum: int, _frame: object) -> None:
+    raise SystemExit(0)
+
+
+def _close(selector: selectors.BaseSelector, conn: socket.socket, code: int) -> None:
+    """Tell a worker's ``rayworker`` its exit code and let it go."""
+    try:
+        selector.unregister(conn)
+    except KeyError:
+        pass
+    try:
+        conn.send(str(code).encode())
+    except OSError:
+        pass
+    conn.close()
+
+
+def _kill(pid: int) -> None:
+    try:
+        os.kill(pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+
+
+def _exited() -> list[tuple[int, int]]:
+    """The workers that have exited since last asked, with their exit codes."""
+    done = []
+    try:
+        while (found := os.waitpid(-1, os.WNOHANG))[0]:
+            done.append((found[0], os.waitstatus_to_exitcode(found[1])))
+    except ChildProcessError:
+        pass
+    return done
+
+
+def _fork_ray_worker(conn: socket.socket, inherited: list[socket.socket]) -> int | None:
+    """Fork the worker a ``rayworker`` asked for and return its pid (None, the connection closed,
+    if the ``rayworker`` went before asking); in the child, become it and never return."""
+    message, fds, _, _ = socket.recv_fds(conn, rayworker.MAX_REQUEST, 3)
+    if len(fds) != 3 or not message:
+        for fd in fds:
+            os.close(fd)
+        conn.close()
+        return None
+    with warnings.catch_warnings():  # see the module's docstring
+        warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
+        child = os.fork()
+    if child:
+        for fd in fds:
+            os.close(fd)
+        return child
+    for sock in (conn, *inherited):
+        sock.close()
+    _become_ray_worker(json.loads(message), fds)
+
+
+def _become_ray_worker(request: dict, fds: list[int]) -> None:
+    """In the forked child: Ray's worker, with the command line, environment, folder and standard
+    streams Ray gave the ``rayworker``, as ``python default_worker.py ...`` would start; then exit."""
+    code = 1
+    try:
+        signal.set_wakeup_fd(-1)
+        for sig in (signal.SIGINT, signal.SIGCHLD, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_DFL)
+        for target, fd in enumerate(fds):
+            os.dup2(fd, target)
+            os.close(fd)
+        os.chdir(request["cwd"])
+        os.environ.clear()
+        os.environ.update(request["env"])
+        args = request["args"]
+        paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        sys.path[:] = [os.path.dirname(args[0]), *paths, *sys.path[1:]]
+        if threads := os.environ.get("OMP_NUM_THREADS", "").strip():
+            import torch
+
+            torch.set_num_threads(int(threads))  # PyTorch read the fork server's at import
+        sys.argv = args
+        runpy.run_path(args[0], run_name="__main__")
+        code = 0
+    except SystemExit as done:
+        code = _exit_code(done)
+    except BaseException:
+        logger.exception("The forked Ray worker failed")
     finally:
         sys.stdout.flush()
         sys.stderr.flush()
