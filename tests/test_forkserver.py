@@ -17,7 +17,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from zk0.deployment.forkserver import ForkServer
+from zk0.deployment.forkserver import RAY_WORKER_SERVER, ForkServer
 
 
 def wait_for(capfd, text: str, timeout: float = 60) -> str:
@@ -114,13 +114,20 @@ def ray_worker_server() -> Iterator[str]:
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        yield host.stdout.readline().strip()
+        path = host.stdout.readline().strip()
+        (server,) = psutil.Process(host.pid).children()
+        assert server.name() == RAY_WORKER_SERVER, "named for `ps` and the benchmarks' memory watch"
+        yield path
     finally:
         host.stdin.close()
         host.wait(timeout=30)
 
 
 WORKER = """import os, sys, time
+if sys.argv[1] == "--wait":
+    import ray._raylet
+
+    ray._raylet.setproctitle("ray::ClientAppActor")  # as Ray's worker names itself
 print(sys.argv[1:], os.environ["RAY_JOB_ID"], os.getcwd(), os.getpid(), flush=True)
 print("said on stderr", file=sys.stderr, flush=True)
 if sys.argv[1] == "--wait":
@@ -134,7 +141,9 @@ def test_a_ray_worker_is_forked_with_rays_arguments_environment_folder_and_outpu
     worker runs forked from the fork server, as ``python <script> <arguments>`` would, with the
     environment, folder and output files Ray gave; the ``rayworker`` exits with its code, and
     killing the ``rayworker`` (as Ray stops a worker that has not registered) kills the worker.
+    It can rename itself as Ray's workers do, which the benchmarks' memory watch reads.
     Without the fork server, the worker starts as Ray would start it."""
+    from zk0.bench.watch import role_of
     from zk0.deployment import rayworker
 
     script = tmp_path / "default_worker.py"
@@ -155,8 +164,11 @@ def test_a_ray_worker_is_forked_with_rays_arguments_environment_folder_and_outpu
 
         waiting = subprocess.Popen([*starter, "--wait"], env=env, stdout=subprocess.PIPE, text=True)
         worker = psutil.Process(int(waiting.stdout.readline().split()[-1]))
-        waiting.kill()
-        worker.wait(timeout=10)  # raises if it outlives its rayworker
+        try:
+            assert worker.name() == "ray::ClientAppActor" and role_of(worker) == "client", "named as Ray names it"
+        finally:
+            waiting.kill()
+            worker.wait(timeout=10)  # raises if it outlives its rayworker
     deadline = time.monotonic() + 10
     while Path(path).parent.exists() and time.monotonic() < deadline:
         time.sleep(0.1)

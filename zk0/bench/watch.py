@@ -20,6 +20,7 @@ from pathlib import Path
 
 import psutil
 
+from zk0.deployment.forkserver import RAY_WORKER_SERVER
 from zk0.deployment.simulation import superlink_tree
 
 MIB = 2**20
@@ -28,9 +29,11 @@ MIB = 2**20
 # SuperNodes, and Ray's actors run the ClientApps. In a deployment flwr-serverapp runs the ServerApp
 # and each SuperNode's warm worker (zk0.deployment.worker) keeps its client; a SuperNode's own processes (its
 # SuperExec, fork server and the ClientApp process relaying each message) are "supernode". zk0's
-# simulation SuperLink forks each run's flwr-simulation from its SuperExec's fork server, whose
-# command line the child shows: the fork server itself ("fork server") holds the libraries the
-# child shares, so it is left out of the server side, which counts them in the child.
+# SuperLink forks each run's flwr-simulation (or flwr-serverapp) from its SuperExec's fork server,
+# whose command line the child shows: the fork server itself ("fork server") holds the libraries the
+# child shares, so it is left out of the server side, which counts them in the child; so is the
+# Ray worker fork server beside it (named RAY_WORKER_SERVER), whose forked workers name themselves
+# ``ray::ClientAppActor`` once Ray starts in them.
 FORK_SERVER = "zk0.deployment.forkserver --server"
 ROLES = {
     "ClientAppActor": "client",
@@ -55,7 +58,10 @@ def role_of(process: psutil.Process) -> str:
     cmdline = " ".join(process.cmdline())
     if FORK_SERVER in cmdline:
         parent = process.parent()
-        return "simulation" if parent is not None and FORK_SERVER in " ".join(parent.cmdline()) else "fork server"
+        if process.name() == RAY_WORKER_SERVER or parent is None or FORK_SERVER not in " ".join(parent.cmdline()):
+            return "fork server"
+        simulating = any("--simulation" in " ".join(p.cmdline()) for p in process.parents())
+        return "simulation" if simulating else "serverapp"  # a run's process, forked
     return next((role for word, role in ROLES.items() if word in cmdline), "ray" if "ray" in cmdline else "other")
 
 

@@ -10,6 +10,10 @@ the 39 a minimal two-round simulation took) for a ServerApp, every run. zk0's Su
 once and forks a child per task, which runs Flower's command with the arguments Flower chose
 (its token, TLS, parent pid).
 
+A SuperLink's fork server also forks, once, a Ray worker fork server: a simulated run's Ray
+starts each worker (each actor's process, which would import PyTorch and lerobot again) through
+``zk0.deployment.rayworker``, which asks it over a Unix socket for a forked worker.
+
 The child is still Flower's task process: it pulls the task, unpacks the submitted FAB and
 imports the app's code from it. The fork server holds only third-party modules and no ``zk0``
 module a child could reuse (each child forgets them before Flower loads the app), so the code
@@ -39,9 +43,11 @@ from loguru import logger
 
 from zk0.deployment import rayworker
 
-# What a zk0 ServerApp imports that takes seconds, loaded once by a SuperLink's fork server: only
-# third-party modules (the app's own come from the FAB). Neither MuJoCo (it chooses its GL
-# backend from MUJOCO_GL when imported) nor Ray (a run's process starts its own).
+# What a zk0 ServerApp or ClientApp imports that takes seconds, loaded once by a SuperLink's fork
+# server (and shared by its Ray worker fork server): only third-party modules (the app's own come
+# from the FAB). Neither MuJoCo (it chooses its GL backend from MUJOCO_GL when imported) nor Ray
+# (importing it fixes its core worker's settings from this process's environment: a forked
+# worker would lack the RAY_JOB_ID that Ray gives each one).
 SERVER_LIBRARIES = (
     "torch",
     "lerobot.datasets.lerobot_dataset",
@@ -50,6 +56,9 @@ SERVER_LIBRARIES = (
     "lerobot.processor",
     "matplotlib.figure",
 )
+
+
+RAY_WORKER_SERVER = "zk0-ray-forks"  # the Ray worker fork server's process name (15 characters at most)
 
 
 class ForkServer:
@@ -104,7 +113,7 @@ def serve(requests: IO[str], server: bool = False) -> None:
     internals.shorten_object_pull_backoff()  # the arrays a task pulls from its SuperNode or SuperLink
     _forget_zk0()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the group: the SuperExec ends this
-    ray_workers = start_ray_worker_server() if server else None
+    ray_workers = None  # started with the first simulation (a deployment's SuperLink runs none)
     signal.signal(signal.SIGCHLD, _reap)
     for line in requests:
         request = json.loads(line)
@@ -112,6 +121,8 @@ def serve(requests: IO[str], server: bool = False) -> None:
         if command is None:
             logger.error("zk0: this fork server starts {}, not {!r}.", ", ".join(commands), request["args"][0])
             continue
+        if request["args"][0] == "flwr-simulation" and ray_workers is None:
+            ray_workers = start_ray_worker_server() or ""
         with warnings.catch_warnings():  # Python warns of any thread; see the module's docstring
             warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
             child = os.fork()
@@ -149,6 +160,15 @@ def _run_task(command, args: list[str], quiet: bool) -> None:
         os._exit(code)
 
 
+def _take_environment(env: dict[str, str]) -> None:
+    """Make this process's environment ``env``, changing only what differs: Ray names its workers
+    (``ray::ClientAppActor``) by rewriting the memory of their command line and environment, which
+    fails where the first variable was removed or the whole environment replaced."""
+    for name in [name for name in os.environ if name not in env]:
+        del os.environ[name]
+    os.environ.update({name: value for name, value in env.items() if os.environ.get(name) != value})
+
+
 def _exit_code(done: SystemExit) -> int:
     return done.code if isinstance(done.code, int) else (0 if done.code is None else 1)
 
@@ -170,6 +190,7 @@ def start_ray_worker_server() -> str | None:
     listener.listen(16)
     if os.fork() == 0:
         try:
+            Path("/proc/self/comm").write_text(RAY_WORKER_SERVER)  # its name, for `ps` and bench.watch
             _serve_ray_workers(listener)
         except SystemExit:
             pass
@@ -281,8 +302,7 @@ def _become_ray_worker(request: dict, fds: list[int]) -> None:
             os.dup2(fd, target)
             os.close(fd)
         os.chdir(request["cwd"])
-        os.environ.clear()
-        os.environ.update(request["env"])
+        _take_environment(request["env"])
         args = request["args"]
         paths = [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
         sys.path[:] = [os.path.dirname(args[0]), *paths, *sys.path[1:]]

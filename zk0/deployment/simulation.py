@@ -9,9 +9,10 @@ SuperLink on the machine, and the SuperLink is stopped afterwards.
 already running another federation can exceed; so the SuperLink is started here first, with
 the arguments `flwr run` would use and a patient deadline, and `flwr run` finds it up. It is
 Flower's SuperLink run as ``python -m zk0.deployment.superlink``, which forks each run's
-``flwr-simulation`` from a process that has imported PyTorch and lerobot once: a benchmark's
-or a test worker's many federations each start about 10 s of CPU sooner. (``./train.sh`` runs
-the SuperLink `flwr run` starts, Flower's own, and the suite's quick-run tests run it that way.)
+``flwr-simulation`` and its Ray workers from processes that have imported PyTorch and lerobot
+once: a benchmark's or a test worker's many federations each start about 20 s of CPU sooner.
+(``./train.sh`` runs the SuperLink `flwr run` starts, Flower's own, and the suite's quick-run
+tests run it that way.)
 """
 
 from __future__ import annotations
