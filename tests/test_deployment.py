@@ -145,6 +145,9 @@ def test_supernodes_run_the_submitted_code_keep_their_logs_and_stay_warm(federat
         # Its ClientApps were forked from a process that had imported Flower (and forgot its own zk0).
         assert workers_under(federation.root / robot, "zk0.deployment.forkserver"), "the SuperNode's fork server runs"
         assert "fork server exited" not in federation.log(robot)
+    # The SuperLink's ServerApp was forked from a process that had imported PyTorch and lerobot.
+    assert workers_under(federation.root, "zk0.deployment.forkserver --server"), "the SuperLink's fork server runs"
+    assert "fork server exited" not in federation.log("superlink")
     assert not list(run_dir.glob("clients/*/client.log"))
     # The warm worker built each client once; later messages found it built and continued training,
     # in the folder the SuperNodes created first when they registered.

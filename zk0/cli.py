@@ -289,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--insecure", action="store_true", help="no TLS, no authentication (trusted test networks only)"
     )
     superlink.add_argument(
-        "--dry-run", action="store_true", help="print the flower-superlink command instead of running it"
+        "--dry-run", action="store_true", help="print the SuperLink's command instead of running it"
     )
     superlink.set_defaults(func=_superlink)
 

@@ -1,6 +1,6 @@
 """The Deployment Engine commands for a zk0 federation: one SuperLink, one SuperNode per robot owner.
 
-These build the ``flower-superlink`` and ``flower-supernode`` command lines (TLS and
+These build Flower's SuperLink and SuperNode command lines (TLS and
 SuperNode authentication on by default; ``insecure`` only when asked, with a warning)
 that ``zk0 superlink`` / ``zk0 supernode`` run, so the documented commands and the tested
 ones are the same. The apps are the simulation's: each SuperNode picks its dataset from the
@@ -31,12 +31,14 @@ def _need(path: Path, what: str) -> str:
 
 
 def superlink_command(certs: Path | None, host: str, port: int, database: Path | None) -> list[str]:
-    """``flower-superlink`` with TLS and SuperNode authentication (``certs`` None = insecure).
+    """Flower's SuperLink with TLS and SuperNode authentication (``certs`` None = insecure), started
+    as ``python -m zk0.deployment.superlink``: ``flower-superlink`` whose SuperExec forks each run's
+    ServerApp process from one that has imported PyTorch and lerobot (about 10 s of CPU a run).
 
     flwr 1.42 serves the Fleet API (SuperNodes), the Control API (``flwr`` CLI) and the
     ServerApp runtime API over HTTPS on one ``host:port``.
     """
-    command = ["flower-superlink"]
+    command = [sys.executable, "-m", "zk0.deployment.superlink"]
     if certs is None:
         logger.warning(INSECURE_WARNING)
         command.append("--insecure")
