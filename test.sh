@@ -2,7 +2,7 @@
 # Set up .venv (as ./train.sh does) and run the test suite in parallel, offline, with a
 # temporary directory and a Flower home that start empty, as a new machine's do (an earlier
 # run's leftovers once hid a fault that every new machine showed). Both are removed afterwards.
-#   ./test.sh          the whole suite (~24 min on 2 cores, after the set-up and the image build;
+#   ./test.sh          the whole suite (~20 min on 2 cores, after the set-up and the image build;
 #                      each test's allowance in seconds: tests/README.md)
 #   ./test.sh --fast   all but the federations, deployments and other slow tests (markers
 #                      in pyproject.toml; ~2 min)
