@@ -273,31 +273,38 @@ def _fork_ray_worker(conn: socket.socket, inherited: list[socket.socket]) -> int
     """Fork the worker a ``rayworker`` asked for and return its pid (None, the connection closed,
     if the ``rayworker`` went before asking); in the child, become it and never return."""
     message, fds, _, _ = socket.recv_fds(conn, rayworker.MAX_REQUEST, 3)
-    if len(fds) != 3 or not message:
-        for fd in fds:
-            os.close(fd)
+    try:
+        request = json.loads(message) if len(fds) == 3 else None
+    except ValueError:  # empty: it went before asking
+        request = None
+    child = None
+    if request is not None:
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})  # the child must not stop as this server
+        with warnings.catch_warnings():  # see the module's docstring
+            warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
+            child = os.fork()
+        if child == 0:
+            _become_ray_worker(request, fds, [conn, *inherited])
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+    for fd in fds:
+        os.close(fd)
+    if child is None:
         conn.close()
-        return None
-    with warnings.catch_warnings():  # see the module's docstring
-        warnings.filterwarnings("ignore", "This process .* is multi-threaded", DeprecationWarning)
-        child = os.fork()
-    if child:
-        for fd in fds:
-            os.close(fd)
-        return child
-    for sock in (conn, *inherited):
-        sock.close()
-    _become_ray_worker(json.loads(message), fds)
+    return child
 
 
-def _become_ray_worker(request: dict, fds: list[int]) -> None:
+def _become_ray_worker(request: dict, fds: list[int], inherited: list[socket.socket]) -> None:
     """In the forked child: Ray's worker, with the command line, environment, folder and standard
-    streams Ray gave the ``rayworker``, as ``python default_worker.py ...`` would start; then exit."""
+    streams Ray gave the ``rayworker`` (the fork server's ``inherited`` sockets closed), as
+    ``python default_worker.py ...`` would start; then exit, whatever happens."""
     code = 1
     try:
         signal.set_wakeup_fd(-1)
         for sig in (signal.SIGINT, signal.SIGCHLD, signal.SIGTERM):
             signal.signal(sig, signal.SIG_DFL)
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+        for sock in inherited:
+            sock.close()
         for target, fd in enumerate(fds):
             os.dup2(fd, target)
             os.close(fd)
